@@ -1,0 +1,104 @@
+"""Pinhole cameras (OpenGL convention) and the rays they shoot.
+
+Conventions (as in NeRF Synthetic / Blender): camera-to-world ``c2w`` is 4x4, the camera looks down
+its local ``-z`` axis, ``+y`` is up in the image and ``+x`` is right. Pixel ``(i, j)`` (column, row)
+has its centre at ``(i + 0.5, j + 0.5)``; row 0 is the top of the image.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+
+@struct.dataclass
+class Rays:
+    """A batch of rays. Shapes: ``origin``/``direction`` ``[R, 3]`` (direction unit length),
+    ``near``/``far`` ``[R]``; ``target`` ``[R, 4]`` straight-alpha RGBA in ``[0, 1]`` or ``None``."""
+
+    origin: jax.Array
+    direction: jax.Array
+    near: jax.Array
+    far: jax.Array
+    target: jax.Array | None = None
+
+    @property
+    def num_rays(self) -> int:
+        return self.origin.shape[0]
+
+    def take(self, index) -> "Rays":
+        """Rays selected by ``index`` (a slice, an index array or a mask) along the ray axis."""
+        return jax.tree_util.tree_map(lambda a: a[index], self)
+
+
+@struct.dataclass
+class Camera:
+    """A pinhole camera. ``c2w`` ``[4, 4]`` camera-to-world (OpenGL); focal lengths and principal
+    point in pixels; ``width``/``height`` are static (they set array shapes)."""
+
+    c2w: jax.Array
+    fx: jax.Array
+    fy: jax.Array
+    cx: jax.Array
+    cy: jax.Array
+    width: int = struct.field(pytree_node=False)
+    height: int = struct.field(pytree_node=False)
+
+    @classmethod
+    def from_fov(cls, c2w, width: int, height: int, camera_angle_x: float) -> "Camera":
+        """NeRF Synthetic intrinsics: ``fx = fy = 0.5 W / tan(camera_angle_x / 2)``, centred."""
+        focal = 0.5 * width / math.tan(0.5 * float(camera_angle_x))
+        return cls(
+            c2w=jnp.asarray(c2w, jnp.float32),
+            fx=jnp.asarray(focal, jnp.float32),
+            fy=jnp.asarray(focal, jnp.float32),
+            cx=jnp.asarray(0.5 * width, jnp.float32),
+            cy=jnp.asarray(0.5 * height, jnp.float32),
+            width=int(width),
+            height=int(height),
+        )
+
+    def scaled(self, factor: int) -> "Camera":
+        """The same camera for an image downscaled by the integer ``factor`` (size floored)."""
+        return self.replace(
+            fx=self.fx / factor,
+            fy=self.fy / factor,
+            cx=self.cx / factor,
+            cy=self.cy / factor,
+            width=self.width // factor,
+            height=self.height // factor,
+        )
+
+
+def pixel_rays(camera: Camera, pixels: jax.Array, near: float, far: float) -> Rays:
+    """Rays through image positions ``pixels`` ``[R, 2]`` given as ``(x, y)`` in pixel units
+    (pixel centres are at ``i + 0.5``). Returns unit directions in world space."""
+    pixels = jnp.asarray(pixels, camera.c2w.dtype)
+    x = (pixels[:, 0] - camera.cx) / camera.fx
+    y = -(pixels[:, 1] - camera.cy) / camera.fy
+    d_cam = jnp.stack([x, y, -jnp.ones_like(x)], axis=-1)
+    d_world = d_cam @ camera.c2w[:3, :3].T
+    direction = d_world / jnp.linalg.norm(d_world, axis=-1, keepdims=True)
+    origin = jnp.broadcast_to(camera.c2w[:3, 3], direction.shape)
+    r = direction.shape[0]
+    return Rays(
+        origin=origin,
+        direction=direction,
+        near=jnp.full((r,), near, direction.dtype),
+        far=jnp.full((r,), far, direction.dtype),
+    )
+
+
+def pixel_centres(width: int, height: int) -> np.ndarray:
+    """``[H * W, 2]`` pixel centres ``(i + 0.5, j + 0.5)`` in row-major order (row 0 first)."""
+    j, i = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    return np.stack([i.ravel() + 0.5, j.ravel() + 0.5], axis=-1).astype(np.float32)
+
+
+def camera_rays(camera: Camera, near: float, far: float) -> Rays:
+    """All ``H * W`` pixel-centre rays of ``camera`` in row-major order."""
+    return pixel_rays(camera, jnp.asarray(pixel_centres(camera.width, camera.height)), near, far)

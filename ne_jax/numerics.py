@@ -1,0 +1,63 @@
+"""Safe numerics: functions whose values *and gradients* stay finite at their hard inputs.
+
+Every helper uses the double-``where`` pattern (the unsafe branch never sees a bad input, so its
+gradient is never ``0 * inf = nan``). The rest of the code uses these instead of ad-hoc epsilons.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def tiny(dtype) -> float:
+    """Smallest positive normal number of ``dtype`` (float32: ~1.2e-38)."""
+    return float(jnp.finfo(dtype).tiny)
+
+
+def safe_norm(x: jax.Array, axis: int = -1, keepdims: bool = False) -> jax.Array:
+    """Euclidean norm along ``axis``; value 0 and gradient 0 (not NaN) at the zero vector."""
+    sq = jnp.sum(x * x, axis=axis, keepdims=True)
+    is_zero = sq <= tiny(x.dtype)
+    norm = jnp.where(is_zero, 0.0, jnp.sqrt(jnp.where(is_zero, 1.0, sq)))
+    return norm if keepdims else jnp.squeeze(norm, axis=axis)
+
+
+def safe_normalize(x: jax.Array, axis: int = -1, fallback: jax.Array | None = None) -> jax.Array:
+    """``x / |x|`` along ``axis``; the zero vector maps to ``fallback`` (default: zeros), finite grad."""
+    norm = safe_norm(x, axis=axis, keepdims=True)
+    is_zero = norm <= 0.0
+    unit = x / jnp.where(is_zero, 1.0, norm)
+    if fallback is None:
+        fallback = jnp.zeros_like(x)
+    return jnp.where(is_zero, jnp.broadcast_to(fallback, x.shape), unit)
+
+
+def safe_log(x: jax.Array) -> jax.Array:
+    """``log(x)`` clamped below at the dtype's smallest normal: finite for ``x <= 0``, grad 0 there."""
+    floor = tiny(x.dtype)
+    ok = x > floor
+    return jnp.where(ok, jnp.log(jnp.where(ok, x, 1.0)), jnp.log(jnp.asarray(floor, x.dtype)))
+
+
+def safe_exp(x: jax.Array) -> jax.Array:
+    """``exp(x)`` with ``x`` clamped so the result stays finite in ``x``'s dtype."""
+    hi = float(jnp.log(jnp.finfo(x.dtype).max)) - 1.0
+    return jnp.exp(jnp.minimum(x, hi))
+
+
+def safe_div(num: jax.Array, den: jax.Array, fallback: float = 0.0) -> jax.Array:
+    """``num / den`` where ``den != 0``, ``fallback`` where ``den == 0``; finite gradient everywhere."""
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), fallback)
+
+
+def safe_reciprocal(x: jax.Array, fallback: float = 0.0) -> jax.Array:
+    """``1 / x`` where ``|x|`` is at least the dtype's smallest normal (so the result is finite),
+    ``fallback`` elsewhere — including ``0.0``, ``-0.0`` and denormals, whose reciprocal would be
+    ``inf``. Finite gradient everywhere (``-1/x^2`` on the safe side, 0 on the fallback side).
+
+    Ray-box slab tests use this for ray directions: a component that gets the fallback is treated as
+    exactly parallel to the slab by the caller, never multiplied through as ``0 * inf = nan``."""
+    ok = jnp.abs(x) >= tiny(x.dtype)
+    return jnp.where(ok, 1.0 / jnp.where(ok, x, 1.0), jnp.asarray(fallback, x.dtype))

@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# One entry point that sets itself up on a fresh machine (Python >= 3.11), then runs:
+#   bash run.sh demo [flags]   the main job on the built-in default scene (see `ne-jax demo --help`)
+#   bash run.sh test [flags]   the test suite (flags go to pytest)
+#   bash run.sh <cmd> [flags]  any other `ne-jax` sub-command
+# The virtual environment lives in .venv and is re-installed only when pyproject.toml changes.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+cd "$here"
+
+die() { printf 'run.sh: %s\n' "$*" >&2; exit 1; }
+
+find_python() {
+  for py in "${PYTHON:-}" python3.11 python3.12 python3.13 python3; do
+    [ -n "$py" ] || continue
+    command -v "$py" >/dev/null 2>&1 || continue
+    if "$py" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else 1)' 2>/dev/null; then
+      echo "$py"; return 0
+    fi
+  done
+  return 1
+}
+
+# Open3D's wheel links against the system library libusb-1.0 and fails to import without it.
+ensure_libusb() {
+  if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then return 0; fi
+  local sudo=""
+  [ "$(id -u)" = 0 ] || { command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null && sudo="sudo -n"; }
+  if command -v apt-get >/dev/null 2>&1 && { [ "$(id -u)" = 0 ] || [ -n "$sudo" ]; }; then
+    echo "run.sh: installing the system library libusb-1.0 (Debian package libusb-1.0-0) that Open3D needs" >&2
+    $sudo apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq libusb-1.0-0 >/dev/null \
+      || die "could not install libusb-1.0-0 with apt-get; install it yourself: 'sudo apt-get install libusb-1.0-0'"
+    ldconfig 2>/dev/null || true
+  else
+    die "Open3D needs the system library libusb-1.0, which is missing. Install it, e.g. 'sudo apt-get install libusb-1.0-0' (Debian/Ubuntu), 'sudo dnf install libusb1' (Fedora), 'brew install libusb' (macOS), then run this again."
+  fi
+}
+
+setup() {
+  ensure_libusb
+  local py; py="$(find_python)" || die "Python >= 3.11 not found (tried python3.11, python3.12, python3.13, python3); set PYTHON=/path/to/python3.11"
+  if [ ! -x .venv/bin/python ]; then
+    echo "run.sh: creating .venv with $("$py" --version)" >&2
+    "$py" -m venv .venv
+  fi
+  local stamp=".venv/.ne_jax_installed" want
+  want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
+  if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+    echo "run.sh: installing ne_jax and its dependencies into .venv (first run: a few minutes)" >&2
+    .venv/bin/python -m pip install -q --upgrade pip
+    .venv/bin/python -m pip install -q -e ".[test]"
+    echo "$want" > "$stamp"
+  fi
+}
+
+cmd="${1:-}"
+[ -n "$cmd" ] || die "usage: bash run.sh demo|test|<ne-jax sub-command> [flags]"
+shift
+setup
+case "$cmd" in
+  test) exec .venv/bin/python -m pytest "$@" ;;
+  *)    exec .venv/bin/ne-jax "$cmd" "$@" ;;
+esac
