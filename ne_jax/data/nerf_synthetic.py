@@ -516,7 +516,10 @@ def load_split(scene_dir: str | os.PathLike, split: str, downscale: int = 1) -> 
             raise _fail(path, f"{where}.file_path", f"expected a non-empty string, found {fp!r}")
         c2ws.append(check_rigid(frame["transform_matrix"], path, f"{where}.transform_matrix"))
         image_path = _resolve_image(scene_dir, fp, path, f"{where}.file_path")
-        img = read_image(image_path)
+        try:
+            img = read_image(image_path)
+        except DataError as e:
+            raise _fail(path, f"{where}.file_path", str(e)) from None
         if images and img.shape != images[0].shape:
             raise _fail(
                 path,
