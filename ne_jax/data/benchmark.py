@@ -1,0 +1,156 @@
+"""Writing the procedural editing benchmark to disk, in the NeRF Synthetic layout.
+
+Layout of ``<root>`` for one preset::
+
+    <root>/<scene>/transforms_{train,val,test}.json, {train,val,test}/r_<i>.png
+    <root>/<scene>/points.ply          surface samples: x y z nx ny nz red green blue material
+    <root>/<scene>/scene.json          what was made, how, and the edits' descriptions
+    <root>/<scene>/edits/<edit>/       the edited scene as ground truth: transforms_{train,test}.json,
+                                       images from the *same* cameras, points.ply with an ``index``
+                                       property (the original sample each edited point came from)
+
+Everything is deterministic for a seed (same seed, same bytes), and each scene directory appears
+only when complete (written to a temporary sibling, then renamed).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ne_jax.atomic import atomic_directory, atomic_write_json
+from ne_jax.data import synthetic as S
+from ne_jax.data.nerf_synthetic import write_split
+from ne_jax.data.ply import write_ply
+
+
+@dataclass(frozen=True)
+class BenchmarkPreset:
+    """Sizes of one benchmark preset."""
+
+    name: str
+    resolution: int
+    """Image width and height in pixels."""
+    train_views: int
+    val_views: int
+    test_views: int
+    """Test views lie on an orbit at 25 degrees elevation; train/val views are random."""
+    supersample: int
+    """``ss``: each pixel averages an ``ss x ss`` grid of ray samples (anti-aliasing, alpha)."""
+    detail: float
+    """Mesh resolution factor (1.0: ~0.05 edge length, 96 segments around)."""
+    surface_samples: int
+    """Points in each ``points.ply``."""
+
+
+PRESETS = {
+    "tiny": BenchmarkPreset("tiny", 64, 24, 4, 8, 2, 0.75, 20_000),
+    "default": BenchmarkPreset("default", 200, 100, 10, 20, 3, 1.0, 200_000),
+}
+
+
+def get_preset(name: str) -> BenchmarkPreset:
+    if name not in PRESETS:
+        raise KeyError(f"unknown benchmark preset {name!r}; expected one of {sorted(PRESETS)}")
+    return PRESETS[name]
+
+
+def _rng(seed: int, scene_name: str, stream: str) -> np.random.Generator:
+    """Independent, reproducible random streams per (seed, scene, purpose)."""
+    key = [seed] + list(scene_name.encode()) + [0] + list(stream.encode())
+    return np.random.default_rng(key)
+
+
+def _render_split(caster: S.RayCaster, c2ws: np.ndarray, preset: BenchmarkPreset, desc: str) -> np.ndarray:
+    res = preset.resolution
+    images = np.empty((len(c2ws), res, res, 4), np.float32)
+    for i in tqdm(range(len(c2ws)), desc=desc, leave=False, unit="img"):
+        images[i] = caster.render(c2ws[i], res, res, S.CAMERA_ANGLE_X, preset.supersample)
+    return images
+
+
+def _write_points(path: Path, samples: dict[str, np.ndarray]) -> None:
+    props = {f"{a}": samples["xyz"][:, i].astype(np.float32) for i, a in enumerate("xyz")}
+    props.update({f"n{a}": samples["normal"][:, i].astype(np.float32) for i, a in enumerate("xyz")})
+    rgb = np.round(np.clip(samples["color"], 0, 1) * 255).astype(np.uint8)
+    props.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2], material=samples["material"].astype(np.uint8))
+    if "index" in samples:
+        props["index"] = samples["index"].astype(np.int32)
+    write_ply(path, props)
+
+
+def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: int = 0) -> dict[str, float]:
+    """Render one scene and all its edits into ``root/<scene_name>``; returns timings in seconds."""
+    t0 = time.perf_counter()
+    scene = S.get_scene(scene_name, preset.detail)
+    cams = {
+        "train": S.random_cameras(preset.train_views, _rng(seed, scene_name, "train")),
+        "val": S.random_cameras(preset.val_views, _rng(seed, scene_name, "val")),
+        "test": S.orbit_cameras(preset.test_views),
+    }
+    samples = S.surface_samples(scene, preset.surface_samples, seed)
+    timings = {"build": time.perf_counter() - t0}
+    variants = [(None, None)] + list(scene.edits.items())
+    with atomic_directory(Path(root) / scene_name) as out:
+        for edit_name, edit in variants:
+            t1 = time.perf_counter()
+            target = out if edit is None else out / "edits" / edit_name
+            target.mkdir(parents=True, exist_ok=True)
+            caster = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials)
+            splits = ("train", "val", "test") if edit is None else ("train", "test")
+            for split in splits:
+                images = _render_split(caster, cams[split], preset, f"{scene_name}/{edit_name or 'original'}/{split}")
+                write_split(target, split, images, cams[split], S.CAMERA_ANGLE_X)
+            _write_points(target / "points.ply", samples if edit is None else S.edit_samples(samples, edit))
+            meta = {
+                "scene": scene_name,
+                "difficulty": scene.difficulty,
+                "edit": edit_name,
+                "edit_description": None if edit is None else edit.description,
+                "preset": asdict(preset),
+                "seed": seed,
+                "near": S.NEAR,
+                "far": S.FAR,
+                "renderer": "open3d RaycastingScene, two-sided Blinn-Phong, 2 shadowed directional lights, sky reflection",
+            }
+            if edit is None:
+                meta["edits"] = {n: {"kind": e.kind, "description": e.description} for n, e in scene.edits.items()}
+            atomic_write_json(target / "scene.json", meta)
+            timings[edit_name or "original"] = time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t0
+    return timings
+
+
+def generate_benchmark(root, preset: str | BenchmarkPreset = "tiny", scenes=None, seed: int = 0) -> dict:
+    """Generate ``scenes`` (default: all) of ``preset`` under ``root``; returns and saves timings
+    (``root/timings.json``)."""
+    preset = get_preset(preset) if isinstance(preset, str) else preset
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    names = list(S.SCENES) if scenes is None else list(scenes)
+    for n in names:
+        if n not in S.SCENES:
+            raise KeyError(f"unknown scene {n!r}; expected one of {sorted(S.SCENES)}")
+    t0 = time.perf_counter()
+    per_scene = {}
+    for name in tqdm(names, desc=f"benchmark[{preset.name}]", unit="scene"):
+        per_scene[name] = generate_scene(name, preset, root, seed)
+    report = {"preset": asdict(preset), "seed": seed, "seconds": time.perf_counter() - t0, "scenes": per_scene}
+    atomic_write_json(root / "timings.json", report)
+    return report
+
+
+def list_variants(root) -> list[tuple[str, str | None, Path]]:
+    """``(scene, edit or None, directory)`` for every scene and edit found under ``root``."""
+    out = []
+    for scene_dir in sorted(p for p in Path(root).iterdir() if (p / "scene.json").is_file()):
+        meta = json.loads((scene_dir / "scene.json").read_text())
+        out.append((scene_dir.name, None, scene_dir))
+        for edit in meta.get("edits", {}):
+            out.append((scene_dir.name, edit, scene_dir / "edits" / edit))
+    return out
