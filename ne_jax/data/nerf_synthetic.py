@@ -46,6 +46,7 @@ from ne_jax.data.rays import Camera, Rays, camera_rays
 SPLITS = ("train", "val", "test")
 RIGID_TOL = 1e-3
 """Tolerance on ``max |R^T R - I|`` (NeRF Synthetic matrices are rigid to ~1e-7)."""
+_MISSING_ANGLE = "missing key: expected camera_angle_x (or fl_x) in the top-level object"
 
 
 class DataError(ValueError):
@@ -175,7 +176,9 @@ def _decode_png(data: bytes, path: Any = "<bytes>") -> np.ndarray:
             "(expected grey, grey+alpha, RGB or RGBA at 8 or 16 bits)",
         )
     if info.interlace != 0:
-        raise _fail(path, None, "unsupported PNG: interlaced (Adam7) 16-bit image; save it without interlacing")
+        raise _fail(
+            path, None, "unsupported PNG: interlaced (Adam7) 16-bit image; save it without interlacing"
+        )
     channels, nbytes = _CHANNELS[info.colour_type], info.bit_depth // 8
     bpp, stride = channels * nbytes, info.width * channels * nbytes
     try:
@@ -248,7 +251,11 @@ def _to_rgba_float(img: np.ndarray, path: Any) -> np.ndarray:
     if img.ndim == 2:
         img = img[..., None]
     if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4):
-        raise _fail(path, None, f"unsupported channels: expected 1 (grey), 2, 3 (RGB) or 4 (RGBA), found shape {img.shape}")
+        raise _fail(
+            path,
+            None,
+            f"unsupported channels: expected 1 (grey), 2, 3 (RGB) or 4 (RGBA), found shape {img.shape}",
+        )
     x = img.astype(np.float32) / np.float32(scale)
     c = x.shape[-1]
     if c in (1, 2):
@@ -301,7 +308,10 @@ def _quantise(images: np.ndarray, bit_depth: int, what: str) -> np.ndarray:
     images = np.asarray(images)
     if np.issubdtype(images.dtype, np.integer):
         if images.dtype != dtype:
-            raise DataError(f"{what}: integer pixels must be {np.dtype(dtype)} for bit_depth={bit_depth}, found {images.dtype}")
+            raise DataError(
+                f"{what}: integer pixels must be {np.dtype(dtype)} for bit_depth={bit_depth}, "
+                f"found {images.dtype}"
+            )
         return images
     if not np.issubdtype(images.dtype, np.floating):
         raise DataError(f"{what}: expected float pixels in [0, 1], found dtype {images.dtype}")
@@ -336,7 +346,9 @@ def _number(value: Any, path: Path, where: str) -> float:
     return float(value)
 
 
-def check_rigid(matrix: Any, path: Any = "<array>", where: str = "transform_matrix", tol: float = RIGID_TOL) -> np.ndarray:
+def check_rigid(
+    matrix: Any, path: Any = "<array>", where: str = "transform_matrix", tol: float = RIGID_TOL
+) -> np.ndarray:
     """Validate a rigid camera-to-world matrix; returns it as float64 ``[4, 4]``.
 
     Requires: shape 4x4, all finite, last row ``[0, 0, 0, 1]`` (to 1e-6), ``max|R^T R - I| <= tol``
@@ -351,7 +363,9 @@ def check_rigid(matrix: Any, path: Any = "<array>", where: str = "transform_matr
         bad = [tuple(int(i) for i in ij) for ij in np.argwhere(~np.isfinite(m))]
         raise _fail(path, where, f"expected finite numbers, found NaN/Inf at entries {bad}")
     if np.max(np.abs(m[3] - np.array([0.0, 0.0, 0.0, 1.0]))) > 1e-6:
-        raise _fail(path, where, f"not a rigid transform: expected last row [0, 0, 0, 1], found {m[3].tolist()}")
+        raise _fail(
+            path, where, f"not a rigid transform: expected last row [0, 0, 0, 1], found {m[3].tolist()}"
+        )
     r = m[:3, :3]
     err = float(np.max(np.abs(r.T @ r - np.eye(3))))
     if err > tol:
@@ -457,7 +471,8 @@ def _intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[float,
     """``(fx, fy, cx, cy, camera_angle_x)`` in pixels at full resolution."""
     for key, size in (("w", width), ("h", height)):
         if key in meta and _number(meta[key], path, key) != size:
-            raise _fail(path, key, f"expected the image {'width' if key == 'w' else 'height'} {size}, found {meta[key]!r}")
+            what = "width" if key == "w" else "height"
+            raise _fail(path, key, f"expected the image {what} {size}, found {meta[key]!r}")
     if "fl_x" in meta:
         fx = _number(meta["fl_x"], path, "fl_x")
         fy = _number(meta["fl_y"], path, "fl_y") if "fl_y" in meta else fx
@@ -471,7 +486,7 @@ def _intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[float,
             angle = _number(meta["camera_angle_x"], path, "camera_angle_x")
         return fx, fy, cx, cy, angle
     if "camera_angle_x" not in meta:
-        raise _fail(path, "camera_angle_x", "missing key: expected camera_angle_x (or fl_x) in the top-level object")
+        raise _fail(path, "camera_angle_x", _MISSING_ANGLE)
     angle = _number(meta["camera_angle_x"], path, "camera_angle_x")
     if not 0.0 < angle < math.pi:
         raise _fail(path, "camera_angle_x", f"expected a field of view in (0, pi) radians, found {angle!r}")
@@ -499,7 +514,7 @@ def load_split(scene_dir: str | os.PathLike, split: str, downscale: int = 1) -> 
     if "frames" not in meta:
         raise _fail(path, "frames", "missing key: expected a list of frames in the top-level object")
     if "fl_x" not in meta and "camera_angle_x" not in meta:
-        raise _fail(path, "camera_angle_x", "missing key: expected camera_angle_x (or fl_x) in the top-level object")
+        raise _fail(path, "camera_angle_x", _MISSING_ANGLE)
     frames = meta["frames"]
     if not isinstance(frames, list) or not frames:
         raise _fail(path, "frames", f"expected a non-empty list of frames, found {frames!r:.100}")
@@ -535,7 +550,9 @@ def load_split(scene_dir: str | os.PathLike, split: str, downscale: int = 1) -> 
     stack = np.stack(images)
     if downscale > 1:
         if downscale > min(height, width):
-            raise DataError(f"downscale: factor {downscale} exceeds the image size {width}x{height} of {path}")
+            raise DataError(
+                f"downscale: factor {downscale} exceeds the image size {width}x{height} of {path}"
+            )
         stack = downscale_rgba(stack, int(downscale))
         fx, fy, cx, cy = fx / downscale, fy / downscale, cx / downscale, cy / downscale
     return SceneSplit(
@@ -564,7 +581,8 @@ def load_scene(
     if splits is None:
         splits = [s for s in SPLITS if transforms_path(scene_dir, s).is_file()]
         if not splits:
-            raise _fail(scene_dir, None, "no transforms file: expected transforms_train.json, transforms_val.json or transforms_test.json")
+            expected = ", ".join(f"transforms_{s}.json" for s in SPLITS)
+            raise _fail(scene_dir, None, f"no transforms file: expected one of {expected}")
     return {s: load_split(scene_dir, s, downscale) for s in splits}
 
 
@@ -607,7 +625,8 @@ def write_split(
         for i in range(pixels.shape[0]):
             name = f"r_{i}"
             (tmp / f"{name}.png").write_bytes(_encode_png(pixels[i]))
-            frames.append({"file_path": f"./{split}/{name}", "transform_matrix": c2ws[i].astype(np.float64).tolist()})
+            matrix = c2ws[i].astype(np.float64).tolist()
+            frames.append({"file_path": f"./{split}/{name}", "transform_matrix": matrix})
         json_path.unlink(missing_ok=True)
     atomic_write_json(json_path, {"camera_angle_x": angle, **extra, "frames": frames})
     return json_path
@@ -659,12 +678,16 @@ def parse_background(x: Any) -> np.ndarray:
             return np.asarray(_NAMED_BACKGROUNDS[s], np.float32)
         parts = [p.strip() for p in s.split(",")]
         if len(parts) != 3:
-            raise DataError(f"background {original!r}: expected 'black', 'white' or 'r,g,b', found {len(parts)} component(s)")
+            raise DataError(
+                f"background {original!r}: expected 'black', 'white' or 'r,g,b', "
+                f"found {len(parts)} component(s)"
+            )
         as_float = any("." in p or "e" in p for p in parts)
         try:
             values = [float(p) if as_float else int(p) for p in parts]
         except ValueError:
-            raise DataError(f"background {original!r}: expected three numbers 'r,g,b', found {parts}") from None
+            msg = f"background {original!r}: expected three numbers 'r,g,b', found {parts}"
+            raise DataError(msg) from None
         x = values
     if isinstance(x, np.ndarray):
         if x.shape != (3,):
@@ -692,7 +715,8 @@ def composite(rgba, background):
 
     ``background`` is anything :func:`parse_background` accepts, or an array broadcastable to
     ``[..., 3]`` (per-pixel backgrounds). Works on numpy (host) and jax (device) arrays alike."""
-    if isinstance(background, (str, tuple, list)) or (isinstance(background, np.ndarray) and background.shape == (3,)):
+    is_colour_array = isinstance(background, np.ndarray) and background.shape == (3,)
+    if isinstance(background, (str, tuple, list)) or is_colour_array:
         background = parse_background(background)
     rgb, a = rgba[..., :3], rgba[..., 3:4]
     return rgb * a + background * (1 - a)
