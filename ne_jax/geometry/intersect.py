@@ -1,0 +1,246 @@
+"""Ray / K-D-voxel traversal (data flow step 2 of DESIGN.md).
+
+``intersect`` walks the tree top-down, level by level, keeping for every ray a fixed-capacity
+frontier of the nodes its segment ``[near, far]`` hits, and emits the *minimal intersected voxels*
+of the rendering levels: a node at a rendering level is emitted when the ray hits its box but none
+of its children's boxes; at the bottom rendering level every hit node is emitted (its children are
+single points, not voxels). Above the rendering levels nothing is emitted (the ray's part there is
+empty space). Only valid boxes are emitted; invalid ("too spread out") boxes are still descended
+through, as in the released code. Segments come out sorted by entry distance; boxes of one level are
+disjoint and a child's box lies in its parent's, so the segments of a ray never overlap (except on
+shared faces, where a ray lying exactly in the face plane sees both neighbours).
+
+Hit rule (exact, no epsilon in the slab test itself): per axis, a direction component that is
+``0.0`` or ``-0.0`` (or smaller than the dtype's smallest normal) makes the ray parallel to that slab:
+inside iff ``lo <= origin <= hi`` (closed). Otherwise the slab is ``[(lo-o)/d, (hi-o)/d]`` (ordered).
+The ray hits the box iff the clipped interval ``[max(enter, near), min(exit, far)]`` is longer than
+``cfg.min_hit_factor * tree.spacing`` (released code: ``unit_len / 16``). Rays through an edge or a
+corner, grazing a box, or tangent to a curved cluster are then deterministic misses; a ray lying in a
+face plane (parallel axis, origin on the face) counts as inside.
+
+Capacities are static (``cfg.frontier_capacity``, ``cfg.max_segments``); what does not fit is
+counted per ray (``frontier_overflow``: nodes dropped from a frontier, whose whole subtree is lost;
+``segment_overflow``: emitted segments beyond the slots). ``intersect_checked`` (host) re-allocates
+and retries until nothing overflows.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from jax import lax
+
+from ne_jax.data.rays import Rays
+from ne_jax.geometry.kdtree import KDTree, KDTreeConfig
+from ne_jax.numerics import safe_reciprocal, tiny
+
+
+@struct.dataclass
+class Segments:
+    """Per ray ``M`` segment slots, sorted by ``t_lo`` (valid slots first).
+
+    Attributes:
+        t_lo, t_hi: ``[R, M]`` entry / exit distance along the ray (0 in invalid slots).
+        node: ``[R, M]`` int32 heap index of the voxel's node (0 in invalid slots).
+        level: ``[R, M]`` int32 tree level of the node (``-1`` in invalid slots).
+        valid: ``[R, M]`` bool.
+        frontier_overflow: ``[R]`` int32 nodes dropped from a full frontier (their subtrees were
+            not visited); ``> 0`` means the segment list is incomplete.
+        segment_overflow: ``[R]`` int32 emitted segments that did not fit into the ``M`` slots.
+        num_emitted: ``[R]`` int32 segments found (valid + segment overflow).
+    """
+
+    t_lo: jax.Array
+    t_hi: jax.Array
+    node: jax.Array
+    level: jax.Array
+    valid: jax.Array
+    frontier_overflow: jax.Array
+    segment_overflow: jax.Array
+    num_emitted: jax.Array
+
+    @property
+    def overflow(self) -> jax.Array:
+        """``[R]`` total overflow count (0 everywhere means complete and exact)."""
+        return self.frontier_overflow + self.segment_overflow
+
+    @property
+    def num_segments(self) -> jax.Array:
+        return jnp.sum(self.valid, axis=-1)
+
+
+def slab_intersect(lo, hi, origin, inv_dir, parallel, near, far, min_len):
+    """Ray-box test; all arguments broadcast (boxes ``[..., 3]``, ray quantities ``[3]`` / ``[]``).
+
+    ``inv_dir = safe_reciprocal(direction)``, ``parallel = |direction| < tiny``. Returns
+    ``(t_lo, t_hi, hit)`` with ``t_lo = max(enter, near)``, ``t_hi = min(exit, far)`` and
+    ``hit = t_lo + min_len < t_hi``. Never NaN; gradients finite (see the module docstring)."""
+    t1 = (lo - origin) * inv_dir
+    t2 = (hi - origin) * inv_dir
+    inside = (lo <= origin) & (origin <= hi)
+    big = jnp.asarray(jnp.inf, t1.dtype)
+    tmin = jnp.where(parallel, jnp.where(inside, -big, big), jnp.minimum(t1, t2))
+    tmax = jnp.where(parallel, jnp.where(inside, big, -big), jnp.maximum(t1, t2))
+    enter = jnp.max(tmin, axis=-1)
+    exit_ = jnp.min(tmax, axis=-1)
+    t_lo = jnp.maximum(enter, near)
+    t_hi = jnp.minimum(exit_, far)
+    return t_lo, t_hi, t_lo + min_len < t_hi
+
+
+def _compact(mask, values, capacity):
+    """Move the entries of ``values`` (tuple of ``[n]`` arrays) where ``mask`` to the front of
+    ``capacity`` slots (stable). Returns ``(compacted, kept_mask, total)``."""
+    pos = jnp.cumsum(mask.astype(jnp.int32)) - 1
+    target = jnp.where(mask & (pos < capacity), pos, capacity)
+    out = tuple(jnp.zeros((capacity + 1,), v.dtype).at[target].set(v)[:capacity] for v in values)
+    total = jnp.sum(mask.astype(jnp.int32))
+    kept = jnp.arange(capacity) < total
+    return out, kept, total
+
+
+def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig, first_emit: int):
+    dtype = origin.dtype
+    depth = tree.depth
+    f_cap, m_cap = cfg.frontier_capacity, cfg.max_segments
+    inv = safe_reciprocal(direction)
+    par = jnp.abs(direction) < tiny(dtype)
+    min_len = (cfg.min_hit_factor * tree.spacing).astype(dtype)
+    test = functools.partial(slab_intersect, origin=origin, inv_dir=inv, parallel=par, near=near, far=far, min_len=min_len)
+
+    r_lo, r_hi, r_hit = test(tree.lo[0], tree.hi[0])
+    r_hit = r_hit & (tree.count[0] > 0)
+    slot0 = jnp.arange(f_cap) == 0
+    front = (
+        jnp.zeros((f_cap,), jnp.int32),
+        jnp.where(slot0, r_lo, 0).astype(dtype),
+        jnp.where(slot0, r_hi, 0).astype(dtype),
+        slot0 & r_hit,
+    )
+    out = (
+        jnp.zeros((m_cap + 1,), dtype),
+        jnp.zeros((m_cap + 1,), dtype),
+        jnp.zeros((m_cap + 1,), jnp.int32),
+        jnp.full((m_cap + 1,), -1, jnp.int32),
+    )
+    zero = jnp.zeros((), jnp.int32)
+
+    def emit(out, n_out, level, node, t_lo, t_hi, mask):
+        pos = n_out + jnp.cumsum(mask.astype(jnp.int32)) - 1
+        target = jnp.where(mask & (pos < m_cap), pos, m_cap)
+        lev = jnp.full(node.shape, level, jnp.int32)
+        out = tuple(o.at[target].set(v) for o, v in zip(out, (t_lo, t_hi, node, lev)))
+        return out, n_out + jnp.sum(mask.astype(jnp.int32))
+
+    def step(carry, level):
+        (node, t_lo, t_hi, live), out, n_out, f_over = carry
+        kids = jnp.stack([2 * node + 1, 2 * node + 2], axis=-1)  # [F, 2]
+        k_lo, k_hi, k_hit = test(tree.lo[kids], tree.hi[kids])
+        k_hit = k_hit & live[:, None] & (tree.count[kids] > 0)
+        leaf_parent = ~jnp.any(k_hit, axis=-1)
+        mask = live & tree.valid[node] & leaf_parent & (level >= first_emit)
+        out, n_out = emit(out, n_out, level, node, t_lo, t_hi, mask)
+        (node, t_lo, t_hi), kept, total = _compact(
+            k_hit.reshape(-1), (kids.reshape(-1), k_lo.reshape(-1), k_hi.reshape(-1)), f_cap
+        )
+        f_over = f_over + jnp.maximum(total - f_cap, 0)
+        return ((node, t_lo, t_hi, kept), out, n_out, f_over), None
+
+    carry = (front, out, zero, zero)
+    if depth > 1:
+        carry, _ = lax.scan(step, carry, jnp.arange(depth - 1, dtype=jnp.int32))
+    (node, t_lo, t_hi, live), out, n_out, f_over = carry
+    mask = live & tree.valid[node]
+    out, n_out = emit(out, n_out, depth - 1, node, t_lo, t_hi, mask)
+
+    o_lo, o_hi, o_node, o_level = (o[:m_cap] for o in out)
+    valid = jnp.arange(m_cap) < n_out
+    key = jnp.where(valid, o_lo, jnp.inf)
+    _, o_lo, o_hi, o_node, o_level, o_valid = lax.sort(
+        (key, o_lo, o_hi, o_node, o_level, valid.astype(jnp.int32)), num_keys=1, is_stable=True
+    )
+    o_valid = o_valid.astype(bool)
+    seg_over = jnp.maximum(n_out - m_cap, 0)
+    return (
+        jnp.where(o_valid, o_lo, 0),
+        jnp.where(o_valid, o_hi, 0),
+        jnp.where(o_valid, o_node, 0),
+        jnp.where(o_valid, o_level, -1),
+        o_valid,
+        f_over,
+        seg_over,
+        n_out,
+    )
+
+
+def _check_rays(rays: Rays):
+    o, d = rays.origin, rays.direction
+    if o.ndim != 2 or o.shape[-1] != 3:
+        raise ValueError(f"rays.origin: expected shape [R, 3], found shape {o.shape}")
+    if d.shape != o.shape:
+        raise ValueError(f"rays.direction: expected shape {o.shape} (as origin), found shape {d.shape}")
+    for name in ("near", "far"):
+        a = getattr(rays, name)
+        if a.shape != o.shape[:1]:
+            raise ValueError(f"rays.{name}: expected shape [R={o.shape[0]}], found shape {a.shape}")
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "include_grow_level"))
+def intersect(tree: KDTree, rays: Rays, cfg: KDTreeConfig = KDTreeConfig(), include_grow_level: bool = False) -> Segments:
+    """Minimal intersected voxels of every ray (see the module docstring). Jit-compiled; ``cfg``
+    and ``include_grow_level`` (also emit the growing level's minimal voxels) are static.
+
+    Args:
+        tree: from :func:`~ne_jax.geometry.kdtree.build_tree` (``cfg.num_render_levels`` must match).
+        rays: ``origin``/``direction`` ``[R, 3]`` (direction need not be unit: ``t`` is in units of
+            its length), ``near``/``far`` ``[R]`` finite.
+    """
+    _check_rays(rays)
+    if tree.num_render_levels != cfg.num_render_levels:
+        raise ValueError(
+            f"cfg.num_render_levels: expected the tree's value {tree.num_render_levels}, found {cfg.num_render_levels}"
+        )
+    first = tree.depth - cfg.num_render_levels - (1 if include_grow_level else 0)
+    dtype = rays.origin.dtype
+    fn = jax.vmap(lambda o, d, n, f: _traverse_one(tree, o, d, n, f, cfg, first))
+    out = fn(rays.origin, rays.direction.astype(dtype), rays.near.astype(dtype), rays.far.astype(dtype))
+    return Segments(*out)
+
+
+def intersect_checked(
+    tree: KDTree,
+    rays: Rays,
+    cfg: KDTreeConfig = KDTreeConfig(),
+    include_grow_level: bool = False,
+    max_tries: int = 8,
+) -> tuple[Segments, KDTreeConfig]:
+    """Host-side: run :func:`intersect`, and while any ray overflows, re-allocate and retry.
+
+    The frontier capacity doubles on frontier overflow; the segment slots grow to the next power of
+    two above the largest count found. Returns the complete segments and the config that fit (reuse
+    it for later batches: the same capacities mean no recompilation).
+
+    Raises:
+        RuntimeError: still overflowing after ``max_tries`` attempts.
+    """
+    for _ in range(max_tries):
+        seg = intersect(tree, rays, cfg, include_grow_level)
+        f_over = int(jnp.max(seg.frontier_overflow))
+        s_over = int(jnp.max(seg.segment_overflow))
+        if f_over == 0 and s_over == 0:
+            return seg, cfg
+        changes = {}
+        if f_over > 0:
+            changes["frontier_capacity"] = 2 * cfg.frontier_capacity
+        if s_over > 0:
+            need = int(jnp.max(seg.num_emitted))
+            changes["max_segments"] = max(2 * cfg.max_segments, int(2 ** np.ceil(np.log2(need))))
+        cfg = cfg.replace(**changes)
+    raise RuntimeError(
+        f"intersect_checked: still overflowing after {max_tries} tries "
+        f"(frontier_capacity={cfg.frontier_capacity}, max_segments={cfg.max_segments})"
+    )

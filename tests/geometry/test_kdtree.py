@@ -1,0 +1,112 @@
+"""build_tree: structural invariants against the points (float64), candidate sets against brute
+force, degenerate clouds, configuration errors."""
+
+import numpy as np
+import pytest
+
+from ne_jax.geometry import KDTreeConfig, build_tree, tree_depth
+
+from .clouds import CLOUDS, sphere
+from .reference import check_candidates, check_tree
+
+CFG = KDTreeConfig.tiny()
+
+
+@pytest.mark.parametrize("name", sorted(CLOUDS))
+def test_tree_invariants(name):
+    xyz, alive = CLOUDS[name]
+    tree = build_tree(xyz, alive, CFG)
+    check_tree(tree, xyz, alive, CFG)
+    check_candidates(tree, xyz, alive, CFG)
+    n = int(alive.sum())
+    assert tree.depth == tree_depth(n, CFG)
+    assert 2**tree.depth >= n and (tree.depth == CFG.num_render_levels + 1 or 2 ** (tree.depth - 1) < n)
+    assert np.isfinite(float(tree.spacing)) and float(tree.spacing) > 0
+    assert np.all(np.isfinite(np.asarray(tree.lo))) and np.all(np.isfinite(np.asarray(tree.hi)))
+    # At least one rendering-level box is valid: every cloud here is renderable.
+    lv = tree.render_levels
+    start, stop = 2 ** lv[0] - 1, 2**tree.depth - 1
+    assert np.asarray(tree.valid)[start:stop].any()
+
+
+def test_default_config_candidates_and_spacing():
+    xyz = sphere(3000, seed=5)
+    alive = np.ones(len(xyz), bool)
+    cfg = KDTreeConfig()
+    tree = build_tree(xyz, alive, cfg)
+    check_tree(tree, xyz, alive, cfg)
+    check_candidates(tree, xyz, alive, cfg, max_nodes=200)
+    assert tree.candidates.shape == (2**tree.depth - 2**tree.grow_level, 96)
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(xyz).query(xyz, k=2)
+    np.testing.assert_allclose(float(tree.spacing), d[:, 1].mean(), rtol=1e-5)
+    # On a clean surface cloud almost all rendering boxes are valid.
+    r0 = 2 ** tree.render_levels[0] - 1
+    assert np.asarray(tree.valid)[r0 : 2**tree.depth - 1].mean() > 0.95
+
+
+def test_far_outlier_boxes_are_invalid():
+    xyz = np.concatenate([sphere(2000, seed=6), np.array([[40.0, 0, 0], [40.5, 0, 0]], np.float32)])
+    tree = build_tree(xyz, np.ones(len(xyz), bool), KDTreeConfig())
+    perm = np.asarray(tree.perm)
+    bottom = tree.depth - 1
+    rows = perm.reshape(-1, 2)
+    hit = [i for i, r in enumerate(rows) if (r == 2000).any() or (r == 2001).any()]
+    # Nodes holding the outliers: their 96 candidates reach across the scene -> invalid.
+    assert not np.asarray(tree.valid)[[2**bottom - 1 + i for i in hit]].any()
+
+
+def test_fixed_depth_gives_fixed_shapes():
+    cfg = KDTreeConfig.tiny(depth=9)
+    xyz = sphere(600, 1)
+    a = build_tree(xyz, np.arange(600) < 300, cfg)  # same capacity, different alive counts
+    b = build_tree(xyz, np.arange(600) >= 100, cfg)
+    import jax
+
+    assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
+    assert all(x.shape == y.shape for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+    with pytest.raises(ValueError, match=r"alive: expected at most 2\*\*depth = 512 alive points.*found 513"):
+        build_tree(sphere(513, 3), np.ones(513, bool), cfg)
+
+
+def test_tree_helpers():
+    tree = build_tree(sphere(100, 1), np.ones(100, bool), CFG)
+    assert tree.children(0) == (1, 2) and tree.parent(2) == 0 and tree.parent(1) == 0
+    assert tree.level_start(3) == 7 and tree.num_nodes == 2 ** (tree.depth + 1) - 1
+    assert tree.render_levels == (tree.depth - 2, tree.depth - 1) and tree.grow_level == tree.depth - 3
+
+
+@pytest.mark.parametrize(
+    "xyz, alive, match",
+    [
+        (np.zeros((4, 2)), np.ones(4, bool), r"xyz: expected shape \[C, 3\], found shape \(4, 2\)"),
+        (np.zeros((4, 3)), np.ones(3, bool), r"alive: expected shape \[C=4\], found shape \(3,\)"),
+        (np.zeros((4, 3)), np.ones(4, int), r"alive: expected a bool mask, found dtype int"),
+        (np.zeros((4, 3)), np.zeros(4, bool), r"alive: expected at least one alive point, found none"),
+        (np.array([[0, 0, 0], [np.inf, 0, 0.0]]), np.ones(2, bool), r"xyz: expected finite positions.*index 1"),
+    ],
+)
+def test_build_errors(xyz, alive, match):
+    with pytest.raises(ValueError, match=match):
+        build_tree(xyz, alive, CFG)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(knn_k=200), r"KDTreeConfig.knn_k: expected an integer in \[1, 96\], found 200"),
+        (dict(depth=3), r"KDTreeConfig.depth: expected None or an integer in .* = \[5, 21\], found 3"),
+        (dict(frontier_capacity=1), r"KDTreeConfig.frontier_capacity"),
+        (dict(margin_factor=0.0), r"KDTreeConfig.margin_factor: expected > 0"),
+    ],
+)
+def test_config_errors(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        KDTreeConfig(**kwargs)
+
+
+def test_config_is_hashable_and_has_presets():
+    assert hash(KDTreeConfig.paper()) == hash(KDTreeConfig(depth=21))
+    assert KDTreeConfig().num_candidates == 96 and KDTreeConfig().knn_k == 32
+    assert KDTreeConfig.tiny().num_candidates == 16
