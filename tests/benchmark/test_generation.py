@@ -1,0 +1,109 @@
+"""Writing the benchmark: layout, determinism, cameras shared by edits, points, contact sheet, CLI."""
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ne_jax.cli import main
+from ne_jax.data import synthetic as S
+from ne_jax.data.benchmark import BenchmarkPreset, generate_benchmark, generate_scene, list_variants
+from ne_jax.data.nerf_synthetic import load_split
+from ne_jax.data.ply import read_ply
+from ne_jax.viz import contact_sheet
+
+MINI = BenchmarkPreset("mini", resolution=16, train_views=3, val_views=1, test_views=2, supersample=1,
+                       detail=0.5, surface_samples=400)
+
+
+def digest_tree(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def glossy_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench_a")
+    generate_scene("glossy", MINI, root, seed=0)
+    return root
+
+
+def test_same_seed_same_bytes(glossy_root, tmp_path):
+    generate_scene("glossy", MINI, tmp_path, seed=0)
+    a, b = digest_tree(glossy_root / "glossy"), digest_tree(tmp_path / "glossy")
+    assert len(a) > 20 and a == b
+
+
+def test_other_seed_other_cameras(glossy_root, tmp_path):
+    generate_scene("glossy", MINI, tmp_path, seed=1)
+    a = load_split(glossy_root / "glossy", "train").c2w
+    b = load_split(tmp_path / "glossy", "train").c2w
+    assert not np.allclose(a, b)
+
+
+def test_layout_and_shared_cameras(glossy_root):
+    variants = list_variants(glossy_root)
+    assert [v[1] for v in variants] == [None, *S.get_scene("glossy", 0.5).edits]
+    original = {s: load_split(glossy_root / "glossy", s) for s in ("train", "val", "test")}
+    assert [len(original[s]) for s in ("train", "val", "test")] == [3, 1, 2]
+    assert original["train"].images.shape[1:] == (16, 16, 4)
+    for _, edit, directory in variants[1:]:
+        for split in ("train", "test"):
+            edited = load_split(directory, split)
+            np.testing.assert_array_equal(edited.c2w, original[split].c2w)
+            assert not np.array_equal(edited.images, original[split].images), edit
+    # the cut shows caps: more opaque pixels than the original in at least one view
+    assert any(load_split(glossy_root / "glossy" / "edits" / "cut", "train").images[..., 3].sum((1, 2))
+               > original["train"].images[..., 3].sum((1, 2)))
+
+
+def test_points_ply(glossy_root):
+    pts = read_ply(glossy_root / "glossy" / "points.ply")
+    assert len(pts["x"]) == 400 and "index" not in pts
+    normals = np.stack([pts["nx"], pts["ny"], pts["nz"]], 1)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    deleted = read_ply(glossy_root / "glossy" / "edits" / "delete_cube" / "points.ply")
+    assert len(deleted["index"]) < 400
+    np.testing.assert_array_equal(deleted["x"], pts["x"][deleted["index"]])
+
+
+def test_contact_sheet(glossy_root, tmp_path):
+    out = contact_sheet(glossy_root, tmp_path / "sheet.png")
+    import imageio.v3 as iio
+
+    img = iio.imread(out)
+    assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 5 * 100
+
+
+def test_generate_benchmark_rejects_unknown_scene_before_writing(tmp_path):
+    with pytest.raises(KeyError, match="unknown scene 'lego'"):
+        generate_benchmark(tmp_path, MINI, ["glossy", "lego"])
+    assert not (tmp_path / "glossy").exists()
+
+
+def test_failed_scene_leaves_nothing(tmp_path, monkeypatch):
+    def boom(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr("ne_jax.data.benchmark.write_split", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        generate_scene("cup", MINI, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_make_benchmark_and_errors(tmp_path, capsys):
+    assert main(["make-benchmark", "--out", str(tmp_path / "b"), "--scenes", "lego"]) == 2
+    assert "unknown scene 'lego'" in capsys.readouterr().err
+    assert not (tmp_path / "b" / "lego").exists()
+    with pytest.raises(SystemExit):
+        main(["make-benchmark", "--preset", "huge", "--out", str(tmp_path)])
+
+
+def test_cli_demo_runs_end_to_end(tmp_path, capsys):
+    """The README's main command (tiny preset, all scenes)."""
+    assert main(["demo", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "contact sheet" in out
+    assert (tmp_path / "contact_sheet.png").is_file()
+    assert len(list_variants(tmp_path / "benchmark")) == 4 * 5
