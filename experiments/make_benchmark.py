@@ -1,0 +1,74 @@
+"""Generate the procedural editing benchmark and measure how long each preset takes.
+
+    python experiments/make_benchmark.py                      # tiny and default presets
+    python experiments/make_benchmark.py --presets tiny       # just tiny
+
+Writes the scenes to ``--out/<preset>/``, the contact sheet of each preset to
+``experiments/results/benchmark_contact_sheet_<preset>.png`` and the timings to
+``experiments/results/make_benchmark.json``, and prints a Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+from pathlib import Path
+
+from ne_jax.data.benchmark import generate_benchmark, get_preset
+from ne_jax.viz import contact_sheet
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--presets", nargs="+", default=["tiny", "default"])
+    parser.add_argument("--out", default="outputs/benchmark")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    rows = {}
+    for name in args.presets:
+        preset = get_preset(name)
+        root = Path(args.out) / name
+        if root.exists():
+            shutil.rmtree(root)
+        report = generate_benchmark(root, preset, seed=args.seed)
+        n_scenes = len(report["scenes"])
+        n_edits = 4
+        images = n_scenes * ((preset.train_views + preset.val_views + preset.test_views)
+                             + n_edits * (preset.train_views + preset.test_views))
+        sheet = contact_sheet(root, RESULTS / f"benchmark_contact_sheet_{name}.png",
+                              title=f"ne_jax procedural benchmark, preset {name!r} (test view at 45 degrees)")
+        size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+        rows[name] = {
+            "resolution": preset.resolution,
+            "supersample": preset.supersample,
+            "scenes": n_scenes,
+            "images": images,
+            "seconds": round(report["seconds"], 2),
+            "ms_per_image": round(1000 * report["seconds"] / images, 1),
+            "megabytes": round(size / 2**20, 1),
+            "per_scene_seconds": {k: round(v["total"], 2) for k, v in report["scenes"].items()},
+            "contact_sheet": str(sheet.relative_to(RESULTS.parent.parent)),
+        }
+    machine = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}
+    out = RESULTS / "make_benchmark.json"
+    previous = json.loads(out.read_text()) if out.exists() else {}
+    previous.setdefault("presets", {}).update(rows)
+    previous["machine"] = machine
+    out.write_text(json.dumps(previous, indent=2) + "\n")
+
+    print("\n| preset | resolution | ss | scenes x variants | images | time | per image | size |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, r in rows.items():
+        print(f"| {name} | {r['resolution']}x{r['resolution']} | {r['supersample']}x{r['supersample']} | "
+              f"{r['scenes']} x 5 | {r['images']} | {r['seconds']:.1f} s | {r['ms_per_image']:.0f} ms | {r['megabytes']:.0f} MB |")
+    print(f"\nmachine: {machine}; results in {out}")
+
+
+if __name__ == "__main__":
+    main()
