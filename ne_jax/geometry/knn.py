@@ -97,15 +97,15 @@ def _exact_neighbors(state: PointState, points, k: int, chunk: int):
     n = points.shape[0]
     c = state.capacity
     kk = min(k, c)
-    xyz = lax.stop_gradient(state.xyz)
+    px, py, pz = (lax.stop_gradient(a) for a in _split_xyz(state))
     q = lax.stop_gradient(points)
     pad = (-n) % chunk
     qp = jnp.pad(q, ((0, pad), (0, 0))).reshape(-1, chunk, 3)
-    sq = jnp.sum(xyz * xyz, axis=-1)
 
     def one(qc):
-        d2 = jnp.sum(qc * qc, axis=-1, keepdims=True) - 2.0 * qc @ xyz.T + sq[None, :]
-        d2 = jnp.where(state.alive[None, :], jnp.maximum(d2, 0.0), jnp.inf)
+        # Differences, not |q|^2 - 2 q.p + |p|^2: no cancellation for large coordinates.
+        d2 = (qc[:, 0:1] - px[None]) ** 2 + (qc[:, 1:2] - py[None]) ** 2 + (qc[:, 2:3] - pz[None]) ** 2
+        d2 = jnp.where(state.alive[None, :], d2, jnp.inf)
         _, j = lax.top_k(-d2, kk)
         return j
 
