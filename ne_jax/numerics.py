@@ -61,3 +61,13 @@ def safe_reciprocal(x: jax.Array, fallback: float = 0.0) -> jax.Array:
     exactly parallel to the slab by the caller, never multiplied through as ``0 * inf = nan``."""
     ok = jnp.abs(x) >= tiny(x.dtype)
     return jnp.where(ok, 1.0 / jnp.where(ok, x, 1.0), jnp.asarray(fallback, x.dtype))
+
+
+# --- added with the rendering pieces (ne_jax/render) -------------------------------------------
+
+
+def safe_sqrt(x: jax.Array) -> jax.Array:
+    """``sqrt(x)`` for ``x > 0`` (above the dtype's smallest normal), 0 elsewhere; value and gradient
+    finite everywhere (the gradient is 0 where the result is 0, never ``inf`` at ``x = 0``)."""
+    ok = x > tiny(x.dtype)
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), jnp.zeros_like(x))
