@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import jax
 import jax.numpy as jnp
@@ -347,17 +348,27 @@ def _split_levels(x: np.ndarray, depth: int):
     return axes, values, rows[:, 0]
 
 
-def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig()) -> KDTree:
+def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | None = None) -> KDTree:
     """Build the K-D tree of the alive points of ``xyz`` (host-side; see the module docstring).
 
     Args:
         xyz: ``[C, 3]`` positions (a ``PointState.xyz``; numpy or jax). Dead rows may hold anything.
         alive: ``[C]`` bool mask; at least one alive point, at most ``2**max_depth``.
         cfg: static settings.
+        timings: if a dict, receives the wall time in seconds of the build's phases
+            (``index``: scipy tree + spacing statistics, ``splits``, ``boxes``, ``candidates``).
 
     Returns:
         A :class:`KDTree` whose float arrays have ``xyz``'s dtype.
     """
+    clock = [time.perf_counter()]
+
+    def lap(name):
+        now = time.perf_counter()
+        if timings is not None:
+            timings[name] = now - clock[0]
+        clock[0] = now
+
     pts, msk = _check_inputs(xyz, alive)
     cap = pts.shape[0]
     dtype = pts.dtype if np.issubdtype(pts.dtype, np.floating) else np.float32
@@ -369,8 +380,10 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig()) -> KDTree:
 
     kd = cKDTree(x)
     spacing, lim = _spacing_and_limit(x, kd, cfg)
+    lap("index")
 
     axes, values, leaf = _split_levels(x, depth)
+    lap("splits")
 
     # Bottom-up bounding boxes and counts, per level.
     leaf_real = leaf >= 0
@@ -410,6 +423,7 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig()) -> KDTree:
     hi_all = np.concatenate(hi_levels).astype(dtype)
     count_all = np.concatenate(count).astype(np.int32)
     valid_all = count_all > 0
+    lap("boxes")
 
     # Candidate sets of the growing + rendering levels: the points nearest each box centre.
     kc = cfg.num_candidates
@@ -434,6 +448,7 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig()) -> KDTree:
     valid_all[sl] &= ~too_large
 
     perm = np.where(leaf >= 0, idx[np.maximum(leaf, 0)], cap).astype(np.int32)
+    lap("candidates")
     return KDTree(
         lo=jnp.asarray(lo_all),
         hi=jnp.asarray(hi_all),
