@@ -140,8 +140,12 @@ def sample_fractions(s: int, rule: str = "hermite", key: jax.Array | None = None
 
 
 def positions_from_fractions(t_lo: jax.Array, t_hi: jax.Array, u: jax.Array) -> jax.Array:
-    """``t [..., S] = t_lo (1-u) + t_hi u``: exact end points for ``u = 0, 1``."""
-    return t_lo[..., None] * (1 - u) + t_hi[..., None] * u
+    """``t [..., S]`` at fractions ``u`` of ``[t_lo, t_hi]``: ``t_lo + u L`` for ``u <= 1/2`` and
+    ``t_hi - (1 - u) L`` above (``L = t_hi - t_lo``), so both end points are exact and a zero-length
+    segment gives exactly ``t_lo`` everywhere."""
+    lo, hi = t_lo[..., None], t_hi[..., None]
+    span = hi - lo
+    return jnp.where(u <= 0.5, lo + u * span, hi - (1 - u) * span)
 
 
 def sample_positions(t_lo: jax.Array, t_hi: jax.Array, s: int, rule: str = "hermite",
