@@ -4,18 +4,16 @@ from ne_jax.data.rays import Camera, Rays, camera_rays, pixel_rays
 
 __all__ = ["Camera", "Rays", "camera_rays", "pixel_rays"]
 
+from ne_jax.data.png import DataError, read_image, write_image
 from ne_jax.data.nerf_synthetic import (
-    DataError,
     SceneSplit,
     composite,
     downscale_rgba,
     load_scene,
     load_split,
     parse_background,
-    read_image,
     split_rays,
     view_rays,
-    write_image,
     write_split,
 )
 

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from ne_jax.data import nerf_synthetic as ns
-from ne_jax.data.nerf_synthetic import DataError, load_scene, load_split, read_image, write_split
+from ne_jax.data import png
+from ne_jax.data.nerf_synthetic import DataError, load_scene, load_split, write_split
+from ne_jax.data.png import read_image
 
 
 def _raises(match_parts, fn, *args, **kwargs):
@@ -89,7 +91,7 @@ def test_bad_frames_values(make_scene):
 
 def test_images_of_different_sizes(make_scene):
     scene, _ = make_scene(n=3, h=4, w=6)
-    ns.write_image(scene / "train" / "r_2.png", np.zeros((5, 6, 4), np.float32))
+    png.write_image(scene / "train" / "r_2.png", np.zeros((5, 6, 4), np.float32))
     _raises(
         [scene / "transforms_train.json", "[frames[2].file_path]", "different sizes", scene / "train" / "r_2.png", "6x5", "6x4"],
         load_split,
@@ -261,7 +263,7 @@ def test_unsupported_pixel_type(make_scene):
 
 
 def test_unsupported_channel_count(tmp_path):
-    _raises([tmp_path / "x", "channels", "(2, 2, 5)"], ns._to_rgba_float, np.zeros((2, 2, 5), np.uint8), tmp_path / "x")
+    _raises([tmp_path / "x", "channels", "(2, 2, 5)"], png.to_rgba_float, np.zeros((2, 2, 5), np.uint8), tmp_path / "x")
 
 
 def test_write_split_rejects_bad_input(tmp_path, random_c2w, random_rgba):

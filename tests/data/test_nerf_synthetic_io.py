@@ -6,6 +6,7 @@ import io
 import json
 import math
 import os
+import zlib
 
 import numpy as np
 import pytest
@@ -14,7 +15,9 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from ne_jax.data import nerf_synthetic as ns
-from ne_jax.data.nerf_synthetic import DataError, load_scene, load_split, read_image, write_image, write_split
+from ne_jax.data import png
+from ne_jax.data.nerf_synthetic import DataError, load_scene, load_split, write_split
+from ne_jax.data.png import read_image, write_image
 
 
 @pytest.mark.parametrize("bit_depth, tol", [(8, 0.5 / 255 + 1e-7), (16, 0.5 / 65535 + 1e-7)])
@@ -124,7 +127,7 @@ def test_failed_write_leaves_nothing_half_written(make_scene, tmp_path, monkeypa
     else:
         scene = tmp_path / "fresh"
     calls = {"n": 0}
-    real = ns._encode_png
+    real = png.encode_png
 
     def flaky(img, *a, **k):
         calls["n"] += 1
@@ -132,7 +135,7 @@ def test_failed_write_leaves_nothing_half_written(make_scene, tmp_path, monkeypa
             raise OSError("disk full (simulated)")
         return real(img, *a, **k)
 
-    monkeypatch.setattr(ns, "_encode_png", flaky)
+    monkeypatch.setattr(png, "encode_png", flaky)
     rng = np.random.default_rng(9)
     with pytest.raises(OSError, match="simulated"):
         write_split(scene, "train", random_rgba(rng, 5, 4, 6), random_c2w(rng, 5), 0.5)
@@ -169,8 +172,8 @@ def test_write_image_and_read_image(tmp_path):
 def test_png_codec_round_trip_all_filters(h, w, channels, bit_depth, filter_type, seed):
     dtype = np.uint8 if bit_depth == 8 else np.uint16
     img = np.random.default_rng(seed).integers(0, np.iinfo(dtype).max + 1, (h, w, channels)).astype(dtype)
-    data = ns._encode_png(img, filter_type)
-    out = ns._decode_png(data)
+    data = png.encode_png(img, filter_type)
+    out = png.decode_png(data)
     assert out.dtype == dtype
     np.testing.assert_array_equal(out, img)
     # Independent decoder: Pillow reads 8-bit exactly and 16-bit colour as the high byte.
@@ -206,9 +209,9 @@ def test_read_image_of_pillow_written_pngs(tmp_path):
 
 def test_sixteen_bit_colour_key_transparency(tmp_path):
     img = np.array([[[1000, 2000, 3000], [5, 6, 7]]], np.uint16)
-    data = bytearray(ns._encode_png(img))
+    data = bytearray(png.encode_png(img))
     trns = np.array([1000, 2000, 3000], ">u2").tobytes()
-    chunk = len(trns).to_bytes(4, "big") + b"tRNS" + trns + (ns.zlib.crc32(b"tRNS" + trns) & 0xFFFFFFFF).to_bytes(4, "big")
+    chunk = len(trns).to_bytes(4, "big") + b"tRNS" + trns + (zlib.crc32(b"tRNS" + trns) & 0xFFFFFFFF).to_bytes(4, "big")
     at = 8 + 25  # after the signature and IHDR
     (tmp_path / "k.png").write_bytes(bytes(data[:at]) + chunk + bytes(data[at:]))
     out = read_image(tmp_path / "k.png")
