@@ -10,7 +10,6 @@ import zlib
 import numpy as np
 import pytest
 
-from ne_jax.data import nerf_synthetic as ns
 from ne_jax.data import png
 from ne_jax.data.nerf_synthetic import DataError, load_scene, load_split, write_split
 from ne_jax.data.png import read_image

@@ -14,7 +14,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from ne_jax.data import nerf_synthetic as ns
 from ne_jax.data import png
 from ne_jax.data.nerf_synthetic import DataError, load_scene, load_split, write_split
 from ne_jax.data.png import read_image, write_image
