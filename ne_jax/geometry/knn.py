@@ -73,23 +73,34 @@ def _split_xyz(state: PointState):
     return state.xyz[:, 0], state.xyz[:, 1], state.xyz[:, 2]
 
 
-def _candidate_neighbors(state: PointState, tree: KDTree, points, node, k: int):
-    """``points`` ``[B, S, 3]`` share ``node`` ``[B]``. Returns ``(index, valid)`` ``[B, S, K]``."""
+def _safe_sqrt(x):
+    ok = x > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+
+def _candidate_search(state: PointState, tree: KDTree, points, node, k: int, eps):
+    """``points`` ``[B, S, 3]`` share ``node`` ``[B]``. Returns ``(Neighbors [B, S, K], ci, j)``:
+    ``ci`` ``[B, Kc]`` the candidate indices (0 where empty), ``j`` ``[B, S, K]`` the chosen
+    candidate slots. Distances come from the gathered candidate coordinates (one gather per segment,
+    shared by its samples); gradients reach ``xyz`` and ``points`` through them."""
     cand = tree.node_candidates(node)  # [B, Kc]
     ok = cand < state.capacity
     ci = jnp.where(ok, cand, 0)
     ok = ok & state.alive[ci]
-    px, py, pz = (lax.stop_gradient(a)[ci] for a in _split_xyz(state))  # [B, Kc]
-    q = lax.stop_gradient(points)
+    px, py, pz = (a[ci] for a in _split_xyz(state))  # [B, Kc]
     d2 = (
-        (q[..., 0:1] - px[:, None, :]) ** 2
-        + (q[..., 1:2] - py[:, None, :]) ** 2
-        + (q[..., 2:3] - pz[:, None, :]) ** 2
+        (points[..., 0:1] - px[:, None, :]) ** 2
+        + (points[..., 1:2] - py[:, None, :]) ** 2
+        + (points[..., 2:3] - pz[:, None, :]) ** 2
     )  # [B, S, Kc]
-    d2 = jnp.where(ok[:, None, :], d2, jnp.inf)
-    _, j = lax.top_k(-d2, k)  # [B, S, K]; the values are not sliced (DESIGN.md trap)
+    key = jnp.where(ok[:, None, :], lax.stop_gradient(d2), jnp.inf)
+    _, j = lax.top_k(-key, k)  # [B, S, K]; the values are not sliced (DESIGN.md trap)
     b = jnp.arange(ci.shape[0])[:, None, None]
-    return ci[b, j], ok[b, j]
+    s = jnp.arange(points.shape[1])[None, :, None]
+    valid = ok[b, j]
+    dist = _safe_sqrt(d2[b, s, j])
+    weight = knn_weights(state.conf_logit[ci][b, j], dist, valid, eps)
+    return Neighbors(index=ci[b, j], weight=weight, dist=dist, valid=valid), ci, j
 
 
 def _exact_neighbors(state: PointState, points, k: int, chunk: int):
@@ -117,6 +128,46 @@ def _exact_neighbors(state: PointState, points, k: int, chunk: int):
     return idx.astype(jnp.int32), valid
 
 
+def _search(state, tree, points, segment_node, cfg: KDTreeConfig, exact: bool):
+    """Shared by the public functions. Returns ``(neighbors [..., K], dense)`` where ``dense`` is
+    ``(ci [B, Kc], j [B, S, K], lead)`` for the candidate mode with per-segment nodes, else None."""
+    if points.shape[-1:] != (3,):
+        raise ValueError(f"points: expected shape [..., 3], found shape {points.shape}")
+    if tree is None:
+        raise ValueError("tree: expected a KDTree (its spacing sets the distance epsilon), found None")
+    eps = (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)
+    k = cfg.knn_k
+    if exact:
+        flat = points.reshape(-1, 3)
+        idx, valid = _exact_neighbors(state, flat, k, cfg.exact_chunk)
+        nb = _finish(state, flat, idx, valid, eps)
+        return jax.tree_util.tree_map(lambda a: a.reshape(points.shape[:-1] + (k,)), nb), None
+    if segment_node is None:
+        raise ValueError("segment_node: expected node indices (candidate mode), found None")
+    lead = points.shape[:-1]
+    shared = bool(lead) and segment_node.shape == lead[:-1]
+    if segment_node.shape == lead:
+        pts = points.reshape(-1, 1, 3)
+    elif shared:
+        pts = points.reshape(-1, lead[-1], 3)
+    else:
+        raise ValueError(
+            f"segment_node: expected shape {lead} or {lead[:-1]} for points of shape {points.shape}, "
+            f"found shape {segment_node.shape}"
+        )
+    if cfg.num_candidates != tree.candidates.shape[-1]:
+        raise ValueError(
+            f"cfg.num_candidates: expected the tree's candidate width {tree.candidates.shape[-1]}, "
+            f"found {cfg.num_candidates}"
+        )
+    nb, ci, j = _candidate_search(state, tree, pts, segment_node.reshape(-1).astype(jnp.int32), k, eps)
+    out = jax.tree_util.tree_map(lambda a: a.reshape(lead + (k,)), nb)
+    # Per-segment nodes with more chosen slots than candidates: gather the candidates' values once
+    # per segment (fewer rows from the big arrays), see _interpolate_shared.
+    dense = (ci, j, nb.weight, lead) if shared and pts.shape[1] * k > ci.shape[1] else None
+    return out, dense
+
+
 @functools.partial(jax.jit, static_argnames=("cfg", "exact"))
 def knn_neighbors(
     state: PointState,
@@ -134,42 +185,12 @@ def knn_neighbors(
         points: ``[..., 3]`` sample positions.
         segment_node: heap index of each sample's voxel (a candidate level: rendering or growing),
             shape ``points.shape[:-1]`` (one per sample) or ``points.shape[:-2]`` (one per segment,
-            shared by the samples on axis ``-2`` — the candidate gather is then done once). Ignored
-            (may be ``None``) when ``exact``.
+            shared by the samples on axis ``-2``: the candidate gather is then done once per
+            segment). Ignored (may be ``None``) when ``exact``.
         cfg: static; ``knn_k`` and ``knn_eps_factor`` (and ``exact_chunk``) are used.
         exact: global brute-force KNN instead of the candidate sets.
     """
-    if points.shape[-1:] != (3,):
-        raise ValueError(f"points: expected shape [..., 3], found shape {points.shape}")
-    if tree is None:
-        raise ValueError("tree: expected a KDTree (its spacing sets the distance epsilon), found None")
-    eps = (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)
-    k = cfg.knn_k
-    if exact:
-        flat = points.reshape(-1, 3)
-        idx, valid = _exact_neighbors(state, flat, k, cfg.exact_chunk)
-        nb = _finish(state, flat, idx, valid, eps)
-        return jax.tree_util.tree_map(lambda a: a.reshape(points.shape[:-1] + (k,)), nb)
-    if segment_node is None:
-        raise ValueError("segment_node: expected node indices (candidate mode), found None")
-    lead = points.shape[:-1]
-    if segment_node.shape == lead:
-        pts = points.reshape(-1, 1, 3)
-    elif segment_node.shape == lead[:-1]:
-        pts = points.reshape(-1, lead[-1] if lead else 1, 3)
-    else:
-        raise ValueError(
-            f"segment_node: expected shape {lead} or {lead[:-1]} for points of shape {points.shape}, "
-            f"found shape {segment_node.shape}"
-        )
-    if cfg.num_candidates != tree.candidates.shape[-1]:
-        raise ValueError(
-            f"cfg.num_candidates: expected the tree's candidate width {tree.candidates.shape[-1]}, "
-            f"found {cfg.num_candidates}"
-        )
-    idx, valid = _candidate_neighbors(state, tree, pts, segment_node.reshape(-1).astype(jnp.int32), k)
-    nb = _finish(state, pts, idx, valid, eps)
-    return jax.tree_util.tree_map(lambda a: a.reshape(lead + (k,)), nb)
+    return _search(state, tree, points, segment_node, cfg, exact)[0]
 
 
 def interpolate(neighbors: Neighbors, values: Any) -> Any:
@@ -184,6 +205,23 @@ def interpolate(neighbors: Neighbors, values: Any) -> Any:
     return jax.tree_util.tree_map(one, values)
 
 
+def _interpolate_shared(ci, j, weight, lead, values):
+    """Per-segment path: gather each leaf at the segment's candidates once (``[B, Kc, D]``), then
+    take the chosen slots from that small block (cache-resident) for the weighted sum. Measured
+    1.2-1.7x faster than gathering ``[B, S, K, D]`` rows from the global arrays (and than a dense
+    ``[S, Kc]`` weight-matrix product) on this CPU for S=8, K=32, Kc=96, D=44."""
+    b_ = ci.shape[0]
+    b = jnp.arange(b_)[:, None, None]
+
+    def one(v):
+        g = v.reshape(v.shape[0], -1)[ci]  # [B, Kc, D]
+        out = jnp.einsum("bsk,bskd->bsd", weight.astype(g.dtype), g[b, j])
+        return out.reshape(lead + v.shape[1:])
+
+    return jax.tree_util.tree_map(one, values)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "exact"))
 def knn_interpolate(
     state: PointState,
     tree: KDTree,
@@ -197,7 +235,7 @@ def knn_interpolate(
 
     ``values`` is any pytree of ``[C, ...]`` arrays; by default
     ``{"feature": state.feature, "normal": state.normal, "ist": state.ist}``. Returns
-    ``(interpolated pytree, neighbors)``. Pure and jit/vmap/grad-friendly (call it inside ``jit``).
+    ``(interpolated pytree, neighbors)``. Pure and jit/vmap/grad-friendly.
     """
     if values is None:
         values = {"feature": state.feature, "normal": state.normal, "ist": state.ist}
@@ -206,5 +244,7 @@ def knn_interpolate(
             raise ValueError(
                 f"values: expected leaves of shape [C={state.capacity}, ...], found shape {leaf.shape}"
             )
-    nb = knn_neighbors(state, tree, points, segment_node, cfg, exact)
+    nb, dense = _search(state, tree, points, segment_node, cfg, exact)
+    if dense is not None:
+        return _interpolate_shared(*dense, values), nb
     return interpolate(nb, values), nb

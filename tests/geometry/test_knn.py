@@ -124,8 +124,8 @@ def test_per_segment_and_per_sample_nodes_agree():
     pts, seg = samples_from_rays(tree, xyz, alive, CFG)
     a, _ = knn_interpolate(state, tree, pts, seg.node, CFG)
     b, _ = knn_interpolate(state, tree, pts, jnp.broadcast_to(seg.node[..., None], pts.shape[:-1]), CFG)
-    for k in a:
-        np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]))
+    for k in a:  # two summation orders (shared per-segment gather vs per-sample gather)
+        np.testing.assert_allclose(np.asarray(a[k]), np.asarray(b[k]), rtol=1e-6, atol=1e-6)
 
 
 def _one_node_setup(name="sphere_700"):
