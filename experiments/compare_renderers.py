@@ -356,7 +356,7 @@ def main(argv=None) -> int:
         label = scene_name + (f"/{edit_name}" if edit_name else "")
         scene = S.get_scene(scene_name, preset.detail)
         edited = S.apply_to_mesh(scene.mesh, scene.edits[edit_name] if edit_name else None)
-        row = {"scene": scene_name, "edit": edit_name, "faces": int(len(edited.faces))}
+        row = {"scene": scene_name, "edit": edit_name, "faces": len(edited.faces)}
 
         # --- ray caster
         t0 = time.perf_counter()
@@ -533,21 +533,21 @@ def main(argv=None) -> int:
         "",
         *lines,
         "",
-        f"`default` preset: {total_images} images ({n_scenes} scenes x (original {originals} + {n_edits} edits x {edited_views})), "
+        (f"`default` preset: {total_images} images ({n_scenes} scenes x (original {originals} + {n_edits} edits x {edited_views})), "
         f"{n_variants} meshes; the projection adds the per-mesh set-up time "
-        f"(ray caster {rc_build:.2f} s, Mitsuba {mi_build:.2f} s). Mitsuba reference ({ref_spp} spp): {ref_ms / 1000:.1f} s per image.",
+        f"(ray caster {rc_build:.2f} s, Mitsuba {mi_build:.2f} s). Mitsuba reference ({ref_spp} spp): {ref_ms / 1000:.1f} s per image."),
         "",
-        f"Cross-renderer (different shading models, for information): silhouette IoU >= {cross['alpha_iou_min']:.3f}, "
-        f"PSNR ray caster ss={max(ss_list)} vs Mitsuba reference {cross['psnr_raycaster_vs_mitsuba_reference']:.1f} dB.",
+        (f"Cross-renderer (different shading models, for information): silhouette IoU >= {cross['alpha_iou_min']:.3f}, "
+        f"PSNR ray caster ss={max(ss_list)} vs Mitsuba reference {cross['psnr_raycaster_vs_mitsuba_reference']:.1f} dB."),
         *per_scene,
         "",
-        f"Whole run: {wall:.0f} s; load average {load_before[0]:.1f} before, {load_after[0]:.1f} after "
+        (f"Whole run: {wall:.0f} s; load average {load_before[0]:.1f} before, {load_after[0]:.1f} after "
         f"(on {os.cpu_count()} cores: above that, other processes shared the CPU and wall times are inflated). "
         "ms/image is the fastest of 3 renders (wall clock), CPU ms/image the least process CPU time of "
-        "the same renders (all threads; less sensitive to other load).",
+        "the same renders (all threads; less sensitive to other load)."),
         "",
-        "Mitsuba's noise against the true converged image is about the seed-to-seed PSNR + 3 dB (two independent "
-        "noises); the PSNR against the reference is a little lower than that because the reference is noisy too.",
+        ("Mitsuba's noise against the true converged image is about the seed-to-seed PSNR + 3 dB (two independent "
+        "noises); the PSNR against the reference is a little lower than that because the reference is noisy too."),
         "",
     ])
     (args.out / "compare_renderers.md").write_text(md)
