@@ -20,6 +20,6 @@ def test_safe_sqrt_values(dtype):
 
 
 def test_safe_sqrt_grad_finite():
-    g = np.asarray(jax.vmap(jax.grad(safe_sqrt))(jnp.asarray([0.0, -0.0, -3.0, 1e-40, 4.0])))
+    g = np.asarray(jax.vmap(jax.grad(safe_sqrt))(jnp.asarray([0.0, -0.0, -3.0, 1e-40, 4.0], jnp.float32)))
     assert np.all(np.isfinite(g))
     np.testing.assert_allclose(g, [0.0, 0.0, 0.0, 0.0, 0.25], rtol=1e-6)
