@@ -49,7 +49,7 @@ def _double_factorial(n: int) -> int:
     return math.prod(range(n, 0, -2)) if n > 0 else 1
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def ide_tables(degree: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Host float64 tables for ``l_max = 2^(degree-1)``, ``m = 0..l_max`` along the last axis:
     ``seed [l_max+1]`` (``Q_m^m = N_m^m (-1)^m (2m-1)!!``), recurrence constants ``a, b [l_max+1, l_max+1]``

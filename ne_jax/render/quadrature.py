@@ -86,7 +86,7 @@ def _trapezoid(s: int) -> np.ndarray:
     return w
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _weights(s: int, rule: str) -> np.ndarray:
     _check(s, rule)
     if s == 1:
@@ -204,7 +204,7 @@ class QuadratureConfig:
         return max(self.samples_per_level)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _level_table(rule: str, samples: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
     big = max(samples)
     u = np.ones((len(samples), big))

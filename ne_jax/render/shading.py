@@ -52,7 +52,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from ne_jax.numerics import safe_normalize, safe_sqrt
-from ne_jax.render.ide import ide_dim, integrated_dir_enc, positional_encoding
+from ne_jax.render.ide import integrated_dir_enc, positional_encoding
 
 
 @dataclasses.dataclass(frozen=True)
@@ -324,15 +324,14 @@ def num_params(params) -> int:
 
 
 __all__ = [
+    "MLP",
     "BackgroundSphere",
     "Effects",
-    "MLP",
     "SegmentShader",
     "ShadeOut",
     "ShadingConfig",
     "Trunk",
     "background_color",
-    "ide_dim",
     "init_color_model",
     "num_params",
     "redirect",

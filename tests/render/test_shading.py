@@ -42,7 +42,7 @@ def _cfg(**fx):
     return ShadingConfig(effects=Effects(**fx))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _params(cfg):
     return init_color_model(cfg, jax.random.key(0))
 
@@ -247,7 +247,7 @@ def test_outputs_ranges_and_colour_formula():
 
 
 def test_missing_inputs_and_bad_effects_raise():
-    f, n, d, ist = _inputs()
+    f, n, d, _ = _inputs()
     with pytest.raises(ValueError):
         shade(_cfg(), _params(_cfg()), f, None, d)
     with pytest.raises(ValueError):
