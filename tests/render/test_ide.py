@@ -87,10 +87,10 @@ def test_imaginary_m0_columns_are_zero_and_roughness_shapes():
 def test_gradients_finite():
     v = jnp.asarray(_directions(50), jnp.float32)
     r = jnp.linspace(0.0, 3.0, v.shape[0])[:, None]
-    gv, gr = jax.grad(lambda v, r: jnp.sum(integrated_dir_enc(v, r) ** 2), argnums=(0, 1))(v, r)
+    gv, gr = jax.jit(jax.grad(lambda v, r: jnp.sum(integrated_dir_enc(v, r) ** 2), argnums=(0, 1)))(v, r)
     assert np.all(np.isfinite(np.asarray(gv))) and np.all(np.isfinite(np.asarray(gr)))
     # the zero vector (a degenerate reflected direction) stays finite too
-    g0 = jax.grad(lambda v: jnp.sum(integrated_dir_enc(v, jnp.zeros((1, 1)))))(jnp.zeros((1, 3)))
+    g0 = jax.jit(jax.grad(lambda v: jnp.sum(integrated_dir_enc(v, jnp.zeros((1, 1))))))(jnp.zeros((1, 3)))
     assert np.all(np.isfinite(np.asarray(g0)))
 
 
