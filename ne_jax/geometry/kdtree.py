@@ -239,7 +239,10 @@ class KDTree:
         return (node - 1) // 2
 
     def node_candidates(self, node: jax.Array) -> jax.Array:
-        """``[..., num_candidates]`` candidate point indices of candidate-level nodes ``node``."""
+        """``[..., num_candidates]`` candidate point indices of candidate-level nodes ``node``.
+        Other nodes are clipped to the first / last candidate row (no error under jit): the invalid
+        slots of :class:`~ne_jax.geometry.intersect.Segments` hold node 0, so their samples get
+        some candidate set and must be masked by ``Segments.valid`` downstream."""
         row = jnp.clip(node - self.first_candidate_node, 0, self.candidates.shape[0] - 1)
         return self.candidates[row]
 
