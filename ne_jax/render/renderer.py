@@ -1,0 +1,282 @@
+"""Rendering rays and images through the K-D voxels (data flow steps 2-7 of DESIGN.md, joined).
+
+``render_rays(cfg, params, scene, rays, background)``:
+
+1. ``intersect``: the minimal intersected voxels of every ray, ``M`` sorted segment slots;
+2. ``level_samples``: ``s`` evenly spaced samples per segment (``s`` by the segment's level) and the
+   quadrature weights of the configured rule;
+3. ``knn_interpolate``: features (and only what the declared effects read: point normals, IST) at
+   every sample from the K nearest points of the segment's candidate set;
+4. ``integrate``: the segment means ``f_i, n_i, IST_i`` (a weighted sum with the static weights);
+5. ``shade``: density and colour per segment;
+6. ``composite``: ``alpha = 1 - exp(-sigma * len)`` with ``len`` in units of the point spacing
+   (DESIGN.md), transmittance in log space, background behind.
+
+A scene that does not declare an effect does not compute it: without ``point_normals`` (or without
+``specular``) the normals are never interpolated, without ``ist`` the IST matrices are never
+interpolated — they are absent from the compiled program, not multiplied by zero.
+
+``render_image`` renders a camera in fixed-size chunks (the tail padded), so an image of any size
+compiles once per chunk size; the chunk size is the memory knob.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from tqdm.auto import tqdm
+
+from ne_jax.data.rays import Camera, Rays, camera_rays
+from ne_jax.geometry.intersect import intersect
+from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
+from ne_jax.geometry.knn import knn_interpolate
+from ne_jax.geometry.points import PointState
+from ne_jax.render.composite import composite
+from ne_jax.render.quadrature import QuadratureConfig, integrate, level_samples
+from ne_jax.render.shading import Effects, ShadingConfig, background_color, shade
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderConfig:
+    """Static settings of a render (hashable; presets :meth:`tiny`, :meth:`default`, :meth:`paper`)."""
+
+    tree: KDTreeConfig = KDTreeConfig()
+    """K-D tree, traversal capacities and KNN (``knn_k``, candidate-set size)."""
+
+    quadrature: QuadratureConfig = QuadratureConfig()
+    """Integration rule and samples per level (bottom rendering level first)."""
+
+    shading: ShadingConfig = ShadingConfig()
+    """Colour model sizes and the scene's declared effects."""
+
+    exact_knn: bool = False
+    """Global brute-force KNN instead of the candidate sets (reference / accuracy studies only)."""
+
+    chunk: int = 4096
+    """Rays per compiled call in :func:`render_image` (the memory knob; one compilation per value)."""
+
+    segments_per_ray: float | None = 4.0
+    """Segment budget: the valid segments of a ray batch are packed into ``ceil(R * segments_per_ray)``
+    slots before sampling, KNN and shading, so work follows the segments that exist, not the ``M``
+    slots per ray (most rays of an image hit nothing). Segments beyond the budget are dropped and
+    counted in ``RenderOut.overflow``; :func:`render_chunked` re-renders such a chunk with a doubled
+    budget. ``None``: shade every slot (no packing)."""
+
+    def __post_init__(self):
+        levels = self.tree.num_render_levels
+        if len(self.quadrature.samples_per_level) < levels:
+            raise ValueError(
+                f"RenderConfig.quadrature.samples_per_level: expected at least {levels} entries (one per "
+                f"rendering level, bottom first), found {self.quadrature.samples_per_level}"
+            )
+        if self.chunk < 1:
+            raise ValueError(f"RenderConfig.chunk: expected a positive integer, found {self.chunk}")
+        if self.segments_per_ray is not None and not self.segments_per_ray > 0:
+            raise ValueError(f"RenderConfig.segments_per_ray: expected None or > 0, found {self.segments_per_ray}")
+
+    def segment_budget(self, num_rays: int) -> int | None:
+        """Packed segment slots for a batch of ``num_rays`` rays (``None``: no packing)."""
+        if self.segments_per_ray is None:
+            return None
+        return max(1, int(np.ceil(num_rays * self.segments_per_ray)))
+
+    def replace(self, **changes) -> "RenderConfig":
+        return dataclasses.replace(self, **changes)
+
+    def with_effects(self, **changes) -> "RenderConfig":
+        """The same config with some declared effects changed, e.g. ``with_effects(ist=True)``."""
+        effects = dataclasses.replace(self.shading.effects, **changes)
+        return self.replace(shading=dataclasses.replace(self.shading, effects=effects))
+
+    @classmethod
+    def tiny(cls, **changes) -> "RenderConfig":
+        """Tests and toy scenes: 2 rendering levels, K = 8, 16 candidates, few samples."""
+        base = cls(
+            tree=KDTreeConfig.tiny(),
+            quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)),
+            chunk=1024,
+        )
+        return dataclasses.replace(base, **changes)
+
+    @classmethod
+    def default(cls, **changes) -> "RenderConfig":
+        """The paper's per-sample settings (K = 32, s = 8, 11, 16, 22) with a free tree depth."""
+        return dataclasses.replace(cls(), **changes)
+
+    @classmethod
+    def paper(cls, **changes) -> "RenderConfig":
+        """The paper's appendix, including the fixed 21-level tree."""
+        return dataclasses.replace(cls(tree=KDTreeConfig.paper()), **changes)
+
+
+@struct.dataclass
+class PointScene:
+    """What a model renders: the point state and the K-D tree built over its alive points."""
+
+    points: PointState
+    tree: KDTree
+
+    @classmethod
+    def build(cls, points: PointState, cfg: RenderConfig) -> "PointScene":
+        """Build the tree of ``points`` (host side) for rendering with ``cfg``."""
+        return cls(points=points, tree=build_tree(np.asarray(points.xyz), np.asarray(points.alive), cfg.tree))
+
+
+@struct.dataclass
+class RenderOut:
+    """Per-ray results. ``rgb`` ``[R, 3]``, ``opacity``/``depth`` ``[R]``, ``normal`` ``[R, 3]``
+    (opacity-weighted shading normal; zeros when the scene shades without normals),
+    ``num_segments`` ``[R]`` segments rendered. What was lost is counted, never silent:
+    ``overflow`` ``[R]`` segments lost to the traversal's capacities (``KDTreeConfig.frontier_capacity``,
+    ``max_segments``), ``dropped`` ``[R]`` segments beyond the packing budget (``segments_per_ray``).
+    Both 0: the render is complete."""
+
+    rgb: jax.Array
+    opacity: jax.Array
+    depth: jax.Array
+    normal: jax.Array
+    num_segments: jax.Array
+    overflow: jax.Array
+    dropped: jax.Array
+
+
+def _values_needed(points: PointState, effects: Effects) -> dict:
+    """Only the per-point arrays the declared effects read."""
+    values = {"feature": points.feature}
+    if effects.uses_point_normals:
+        values["normal"] = points.normal
+    if effects.uses_ist:
+        values["ist"] = points.ist
+    return values
+
+
+def render_rays(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
+                key: jax.Array | None = None) -> RenderOut:
+    """Render ``rays`` (``[R]``) of ``scene`` with colour-model ``params``.
+
+    ``background``: ``[3]`` or ``[R, 3]`` colour behind the scene (used by the ``"constant"``
+    background; the ``"sphere"`` background is learned). ``key``: needed only by the stochastic
+    integration rule. Pure and differentiable in ``params``, the scene's per-point arrays (positions
+    through the KNN distances; the tree topology is held fixed) and ``rays``."""
+    tcfg = cfg.tree
+    tree = scene.tree
+    seg = intersect(tree, rays, tcfg)
+    r, m = seg.valid.shape
+    budget = cfg.segment_budget(r)
+    flat = lambda a: a.reshape((r * m,) + a.shape[2:])  # noqa: E731
+    if budget is None or budget >= r * m:
+        keep = seg.valid
+        slot = jnp.arange(r * m)
+        live = flat(seg.valid)
+    else:  # pack the valid segments of the whole batch into `budget` slots
+        (slot,) = jnp.nonzero(flat(seg.valid), size=budget, fill_value=0)
+        live = jnp.arange(budget) < jnp.sum(seg.valid)
+        keep = flat(jnp.zeros_like(seg.valid)).at[jnp.where(live, slot, r * m)].set(True, mode="drop").reshape(r, m)
+    ray = slot // m
+    sigma, rgb, normal = _shade_segments(
+        cfg, params, scene, rays.origin[ray], rays.direction[ray], flat(seg.t_lo)[slot], flat(seg.t_hi)[slot],
+        flat(seg.node)[slot], (tree.depth - 1) - flat(seg.level)[slot], key)
+
+    def unpack(v):  # packed [budget, ...] -> [R, M, ...], zeros in slots without a live segment
+        target = jnp.where(live, slot, r * m)
+        full = jnp.zeros((r * m,) + v.shape[1:], v.dtype).at[target].set(v, mode="drop")
+        return full.reshape((r, m) + v.shape[1:])
+
+    lengths = (seg.t_hi - seg.t_lo) / tree.spacing
+    bg = background_color(cfg.shading, params, rays.origin, rays.direction, background)
+    comp = composite(unpack(sigma), unpack(rgb), lengths, keep, 0.5 * (seg.t_lo + seg.t_hi), bg,
+                     normals=None if normal is None else unpack(normal))
+    normal_map = comp.normal if comp.normal is not None else jnp.zeros_like(comp.rgb)
+    return RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
+                     num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
+                     dropped=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32))
+
+
+def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direction, t_lo, t_hi, node,
+                    level_index, key):
+    """Density, colour and shading normal of ``[B]`` segments (rays ``origin``/``direction`` ``[B, 3]``,
+    ``level_index`` 0 = bottom rendering level): sample, interpolate, integrate, shade."""
+    effects = cfg.shading.effects
+    t, w = level_samples(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
+    pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
+    values, _ = knn_interpolate(scene.points, scene.tree, pos, node, cfg.tree, cfg.exact_knn,
+                                _values_needed(scene.points, effects))
+    feature = integrate(values["feature"], w, axis=-2)  # [B, F]
+    normal = integrate(values["normal"], w, axis=-2) if "normal" in values else None
+    ist = integrate(values["ist"], w, axis=-3) if "ist" in values else None
+    out = shade(cfg.shading, params, feature, normal, direction, ist)
+    return out.sigma, out.rgb, out.shading_normal
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _render_chunk(cfg: RenderConfig, params, scene, rays, background) -> RenderOut:
+    return render_rays(cfg, params, scene, rays, background)
+
+
+def grown_config(cfg: RenderConfig, out: RenderOut) -> RenderConfig | None:
+    """Host side: the config with larger capacities if ``out`` lost segments, else ``None``.
+    The packing budget grows on ``dropped`` to what the batch needed; the traversal capacities double
+    on ``overflow`` (as in :func:`~ne_jax.geometry.intersect.intersect_checked`)."""
+    dropped, overflow = int(jnp.max(out.dropped)), int(jnp.max(out.overflow))
+    if dropped == 0 and overflow == 0:
+        return None
+    if dropped > 0:  # enough for what this batch needed, in powers of two (few distinct compiles)
+        needed = float(jnp.sum(out.num_segments) + jnp.sum(out.dropped)) / out.dropped.shape[0]
+        grow = 2.0 ** max(1, int(np.ceil(np.log2(needed / cfg.segments_per_ray))))
+        cfg = cfg.replace(segments_per_ray=grow * cfg.segments_per_ray)
+    if overflow > 0:
+        t = cfg.tree
+        cfg = cfg.replace(tree=t.replace(frontier_capacity=2 * t.frontier_capacity, max_segments=2 * t.max_segments))
+    return cfg
+
+
+def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
+                   progress: bool | None = None, desc: str = "render", max_grow: int = 4) -> RenderOut:
+    """Render any number of rays in compiled chunks of ``cfg.chunk`` (the last one padded).
+
+    A chunk that lost segments is rendered again with grown capacities (:func:`grown_config`, at
+    most ``max_grow`` times; later chunks keep the grown config, so it compiles once more, not per
+    chunk); what is still lost after that is reported in the output's ``overflow``/``dropped``.
+    ``progress``: show a progress bar (default: when there are more than 8 chunks). Deterministic
+    rules only (the stochastic rule is a training-time ablation: use :func:`render_rays`)."""
+    if cfg.quadrature.rule == "stochastic":
+        raise ValueError("render_chunked renders deterministically; the 'stochastic' rule needs render_rays with a key")
+    n = rays.num_rays
+    chunk = cfg.chunk
+    pad = (-n) % chunk
+    padded = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), rays)
+    background = jnp.asarray(background, rays.origin.dtype)
+    per_ray_bg = background.ndim == 2
+    if per_ray_bg:
+        background = jnp.concatenate([background, jnp.repeat(background[-1:], pad, axis=0)])
+    starts = range(0, n + pad, chunk)
+    if progress is None:
+        progress = len(starts) > 8
+    outs = []
+    for s in tqdm(starts, desc=desc, unit="chunk", disable=not progress, leave=False):
+        sl = slice(s, s + chunk)
+        part = jax.tree_util.tree_map(lambda a: a[sl], padded)
+        bg = background[sl] if per_ray_bg else background
+        out = _render_chunk(cfg, params, scene, part, bg)
+        for _ in range(max_grow):
+            bigger = grown_config(cfg, out)
+            if bigger is None:
+                break
+            cfg = bigger
+            out = _render_chunk(cfg, params, scene, part, bg)
+        outs.append(out)
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *outs)
+
+
+def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
+                 near: float, far: float, progress: bool | None = None) -> RenderOut:
+    """Render every pixel of ``camera``; fields are reshaped to images (``rgb`` ``[H, W, 3]``)."""
+    rays = camera_rays(camera, near, far)
+    out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image")
+    h, w = camera.height, camera.width
+    return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out)

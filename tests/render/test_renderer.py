@@ -1,0 +1,172 @@
+"""The joined renderer (intersect -> samples -> KNN -> integrate -> shade -> composite) on a
+benchmark scene with a random model: coverage, packing, overflow, effects, gradients, compiles."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ne_jax.data import synthetic as S
+from ne_jax.data.rays import Camera, Rays, camera_rays
+from ne_jax.geometry.points import PointState
+from ne_jax.render.renderer import (PointScene, RenderConfig, _render_chunk, render_chunked, render_image,
+                                    render_rays)
+from ne_jax.render.shading import init_color_model
+
+RES = 24
+BG = jnp.array([1.0, 1.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def setup():
+    scene_gt = S.get_scene("glossy", 0.5)
+    smp = S.surface_samples(scene_gt, 3000, seed=0)
+    rng = np.random.default_rng(0)
+    points = PointState.from_numpy(smp["xyz"].astype(np.float32), capacity=3200, feature_dim=32,
+                                   normal=smp["normal"].astype(np.float32))
+    points = points.replace(feature=jnp.asarray(rng.normal(0, 0.5, points.feature.shape), jnp.float32),
+                            conf_logit=jnp.full(points.conf_logit.shape, 2.0))
+    cfg = RenderConfig.tiny()
+    scene = PointScene.build(points, cfg)
+    params = init_color_model(cfg.shading, jax.random.key(0))
+    c2w = S.orbit_cameras(8)[1]
+    camera = Camera.from_fov(c2w, RES, RES, S.CAMERA_ANGLE_X)
+    alpha = S.RayCaster(S.apply_to_mesh(scene_gt.mesh, None), scene_gt.materials).render(
+        c2w, RES, RES, S.CAMERA_ANGLE_X, ss=1)[..., 3]
+    return cfg, params, scene, camera, alpha
+
+
+def test_random_model_renders_a_benchmark_camera(setup):
+    cfg, params, scene, camera, alpha = setup
+    out = render_image(cfg, params, scene, camera, BG, S.NEAR, S.FAR)
+    assert out.rgb.shape == (RES, RES, 3) and out.opacity.shape == (RES, RES)
+    for leaf in jax.tree_util.tree_leaves(out):
+        assert np.all(np.isfinite(np.asarray(leaf, np.float64)))
+    op = np.asarray(out.opacity)
+    assert op[alpha == 1].mean() > 0.5 and op[alpha == 0].mean() < 0.05
+    empty = np.asarray(out.num_segments) == 0
+    assert empty.sum() > RES * RES / 4
+    np.testing.assert_array_equal(np.asarray(out.rgb)[empty], np.ones((empty.sum(), 3)))  # pure background
+    np.testing.assert_array_equal(op[empty], 0.0)
+    assert int(jnp.max(out.overflow)) == 0 and int(jnp.max(out.dropped)) == 0
+
+
+def test_packing_changes_nothing_and_drops_are_counted_then_grown(setup):
+    cfg, params, scene, camera, _ = setup
+    rays = camera_rays(camera, S.NEAR, S.FAR)
+    full = render_rays(cfg.replace(segments_per_ray=None), params, scene, rays, BG)
+    packed = render_rays(cfg.replace(segments_per_ray=8.0), params, scene, rays, BG)
+    np.testing.assert_allclose(np.asarray(packed.rgb), np.asarray(full.rgb), atol=1e-6)
+    assert int(packed.dropped.sum()) == 0
+    starved = render_rays(cfg.replace(segments_per_ray=0.05), params, scene, rays, BG)
+    lost = int(starved.dropped.sum())
+    assert lost > 0 and int(starved.num_segments.sum()) + lost == int(full.num_segments.sum())
+    grown = render_chunked(cfg.replace(segments_per_ray=0.05, chunk=RES * RES), params, scene, rays, BG)
+    assert int(grown.dropped.sum()) == 0
+    np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(full.rgb), atol=1e-6)
+
+
+def test_traversal_overflow_is_reported_then_grown(setup):
+    cfg, params, scene, camera, _ = setup
+    rays = camera_rays(camera, S.NEAR, S.FAR)
+    small = cfg.replace(tree=cfg.tree.replace(max_segments=2), chunk=RES * RES)
+    out = render_rays(small, params, scene, rays, BG)
+    assert int(out.overflow.max()) > 0
+    ref = render_rays(cfg.replace(tree=cfg.tree.replace(max_segments=64)), params, scene, rays, BG)
+    grown = render_chunked(small, params, scene, rays, BG, max_grow=6)
+    assert int(grown.overflow.max()) == 0
+    np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(ref.rgb), atol=1e-6)
+
+
+def test_undeclared_effects_are_not_computed(setup):
+    """Poison the arrays an undeclared effect would read: NaN would reach the image even if the
+    branch were only multiplied by zero."""
+    cfg, params, scene, camera, _ = setup
+    rays = camera_rays(camera, S.NEAR, S.FAR)
+    poisoned = scene.replace(points=scene.points.replace(ist=jnp.full_like(scene.points.ist, jnp.nan)))
+    out = render_rays(cfg, params, poisoned, rays, BG)  # tiny preset: IST not declared
+    assert np.isfinite(np.asarray(out.rgb)).all()
+    diffuse = cfg.with_effects(specular=False)
+    p_diffuse = init_color_model(diffuse.shading, jax.random.key(0))
+    no_normals = poisoned.replace(points=poisoned.points.replace(normal=jnp.full_like(scene.points.normal, jnp.nan)))
+    assert np.isfinite(np.asarray(render_rays(diffuse, p_diffuse, no_normals, rays, BG).rgb)).all()
+    # and the declared effect does read them
+    assert not np.isfinite(np.asarray(render_rays(cfg.with_effects(ist=True), params, poisoned, rays, BG).rgb)).all()
+
+
+def test_identity_ist_renders_like_no_ist(setup):
+    cfg, params, scene, camera, _ = setup
+    rays = camera_rays(camera, S.NEAR, S.FAR)
+    a = render_rays(cfg, params, scene, rays, BG)
+    b = render_rays(cfg.with_effects(ist=True), params, scene, rays, BG)
+    # KNN-weighted means of identities are identity up to rounding of the weights' sum.
+    np.testing.assert_allclose(np.asarray(b.rgb), np.asarray(a.rgb), atol=2e-6)
+
+
+def test_gradients_are_finite_and_reach_everything(setup):
+    cfg, params, scene, camera, alpha = setup
+    rays = camera_rays(camera, S.NEAR, S.FAR)
+    hit = np.flatnonzero(alpha.reshape(-1) == 1)[:64]
+    miss = np.flatnonzero(alpha.reshape(-1) == 0)[:8]
+    rays = rays.take(jnp.asarray(np.concatenate([hit, miss])))
+    target = jnp.full((rays.num_rays, 3), 0.3)
+
+    def loss(params, xyz, feature, conf_logit, origin):
+        pts = scene.points.replace(xyz=xyz, feature=feature, conf_logit=conf_logit)
+        out = render_rays(cfg, params, scene.replace(points=pts), rays.replace(origin=origin), BG)
+        return jnp.mean((out.rgb - target) ** 2)
+
+    p = scene.points
+    grads = jax.grad(loss, argnums=(0, 1, 2, 3, 4))(params, p.xyz, p.feature, p.conf_logit, rays.origin)
+    for g in jax.tree_util.tree_leaves(grads):
+        assert np.isfinite(np.asarray(g)).all()
+    g_params, g_xyz, g_feat, g_conf, g_origin = grads
+    assert any(float(jnp.abs(x).max()) > 0 for x in jax.tree_util.tree_leaves(g_params))
+    for g in (g_xyz, g_feat, g_conf, g_origin):
+        assert float(jnp.abs(g).max()) > 0
+
+
+def test_repeated_renders_do_not_recompile(setup):
+    """Same capacities, new poses, features and background: the compiled chunk is reused (a chunk
+    that overflowed may add one compile for its grown budget, once)."""
+    cfg, params, scene, camera, _ = setup
+    other = Camera.from_fov(S.orbit_cameras(8)[5], RES, RES, S.CAMERA_ANGLE_X)
+    moved = scene.replace(points=scene.points.replace(feature=scene.points.feature * 0.5))
+    calls = [(scene, camera, BG), (moved, other, jnp.zeros(3))]
+    for args in calls:
+        render_image(cfg, params, args[0], args[1], args[2], S.NEAR, S.FAR)
+    size = _render_chunk._cache_size()
+    for args in calls:
+        render_image(cfg, params, args[0], args[1], args[2], S.NEAR, S.FAR)
+    assert _render_chunk._cache_size() == size
+
+
+def test_stochastic_rule_needs_a_key_and_no_chunked_render(setup):
+    cfg, params, scene, camera, _ = setup
+    sto = cfg.replace(quadrature=cfg.quadrature.__class__(rule="stochastic", samples_per_level=(4, 6, 8)))
+    rays = camera_rays(camera, S.NEAR, S.FAR).take(slice(0, 16))
+    with pytest.raises(ValueError, match="PRNG key"):
+        render_rays(sto, params, scene, rays, BG)
+    out = render_rays(sto, params, scene, rays, BG, key=jax.random.key(3))
+    assert np.isfinite(np.asarray(out.rgb)).all()
+    with pytest.raises(ValueError, match="stochastic"):
+        render_chunked(sto, params, scene, rays, BG)
+
+
+def test_config_errors_name_the_field():
+    from ne_jax.render.quadrature import QuadratureConfig
+
+    with pytest.raises(ValueError, match="samples_per_level"):
+        RenderConfig(quadrature=QuadratureConfig(samples_per_level=(8, 11)))
+    with pytest.raises(ValueError, match="segments_per_ray"):
+        RenderConfig(segments_per_ray=0.0)
+
+
+def test_rays_that_miss_everything_are_background(setup):
+    cfg, params, scene, _, _ = setup
+    rays = Rays(origin=jnp.array([[10.0, 10.0, 10.0], [0.0, 0.0, 5.0]]),
+                direction=jnp.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                near=jnp.array([0.0, 0.0]), far=jnp.array([10.0, 10.0]))
+    out = render_rays(cfg, params, scene, rays, jnp.array([0.2, 0.4, 0.6]))
+    np.testing.assert_array_equal(np.asarray(out.rgb), np.float32([[0.2, 0.4, 0.6]] * 2))
+    np.testing.assert_array_equal(np.asarray(out.opacity), [0.0, 0.0])
