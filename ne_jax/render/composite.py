@@ -32,7 +32,6 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
-from ne_jax.numerics import safe_div
 
 TAU_MAX = 1.0e3
 """Clamp of the per-slot optical thickness (``exp(-1000) == 0`` in float32 and float64)."""
@@ -85,7 +84,10 @@ def composite(sigma: jax.Array, rgb: jax.Array, lengths: jax.Array, valid: jax.A
     background = jnp.broadcast_to(jnp.asarray(background, dtype), (*sigma.shape[:-1], 3))
     out_rgb = jnp.sum(weights[..., None] * color, axis=-2) + trans_final[..., None] * background
     t = jnp.where(valid, t_mid, 0.0).astype(dtype)
-    depth = safe_div(jnp.sum(weights * t, axis=-1), opacity)
+    # Depth = sum(w t) / opacity, 0 where the ray is (numerically) empty. The guard is sqrt(tiny), not
+    # 0: the gradient -num / opacity^2 overflows to -inf once opacity^2 underflows (opacity < ~1e-19).
+    seen = opacity > jnp.sqrt(jnp.finfo(dtype).tiny)
+    depth = jnp.where(seen, jnp.sum(weights * t, axis=-1) / jnp.where(seen, opacity, 1.0), 0.0)
     normal = None
     if normals is not None:
         nrm = jnp.where(valid[..., None], normals, 0.0).astype(dtype)

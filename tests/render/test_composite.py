@@ -220,3 +220,20 @@ def test_no_recompilation():
     for seed in range(3):
         run(*_jnp32(*_random_rays(seed)[:6])).block_until_ready()
     assert len(traces) == 1 and run._cache_size() == 1
+
+
+def test_depth_gradient_finite_for_vanishing_density():
+    """Opacity ~1e-30: depth is 0 and its gradient finite (opacity^2 underflows in float32)."""
+    t_mid = jnp.array([[2.0, 3.0]])
+
+    def depth(log_sigma):
+        sigma = jnp.exp(log_sigma) * jnp.ones((1, 2))
+        out = composite(sigma, jnp.zeros((1, 2, 3)), jnp.ones((1, 2)), jnp.ones((1, 2), bool), t_mid,
+                        jnp.zeros(3))
+        return out.depth[0]
+
+    for log_sigma in (-69.0, -45.0, -20.0, 0.0):  # sigma from 1e-30 to 1
+        g = jax.grad(depth)(jnp.float32(log_sigma))
+        assert np.isfinite(float(g)), log_sigma
+    assert float(depth(jnp.float32(-69.0))) == 0.0
+    assert 2.0 < float(depth(jnp.float32(0.0))) < 3.0
