@@ -1,0 +1,137 @@
+"""Rendering throughput per preset, and what each declared effect costs.
+
+    python experiments/bench_render.py            # all presets and effects (several minutes on CPU)
+    python experiments/bench_render.py --quick    # small cloud, tiny + default only
+
+A randomly initialised model on the surface samples of the ``glossy`` benchmark scene (the effects
+cost the same whatever the weights), 100x100 images from the test orbit. For each setting: compile
+time, steady-state milliseconds per image (best of ``--repeats``; wall clock and this process's CPU
+time, which moves less when other jobs share the cores) and rays per second, in one run.
+Results are merged into ``experiments/results/bench_render.json`` under the JAX backend's name
+(``cpu`` / ``gpu``), so CPU and GPU runs sit side by side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ne_jax.data import synthetic as S
+from ne_jax.data.rays import Camera
+from ne_jax.geometry.points import PointState
+from ne_jax.render.renderer import PointScene, RenderConfig, render_image
+from ne_jax.render.shading import init_color_model, num_params
+
+RESULTS = Path(__file__).resolve().parent / "results" / "bench_render.json"
+RES = 100
+
+
+def make_points(n: int) -> PointState:
+    scene = S.get_scene("glossy", 1.0)
+    smp = S.surface_samples(scene, n, seed=0)
+    pts = PointState.from_numpy(smp["xyz"].astype(np.float32), feature_dim=32, normal=smp["normal"].astype(np.float32))
+    feat = jax.random.normal(jax.random.key(0), pts.feature.shape) * 0.5
+    return pts.replace(feature=feat, conf_logit=jnp.full(pts.conf_logit.shape, 2.0))
+
+
+def time_render(cfg: RenderConfig, scene: PointScene, repeats: int) -> dict:
+    params = init_color_model(cfg.shading, jax.random.key(1))
+    cams = [Camera.from_fov(c, RES, RES, S.CAMERA_ANGLE_X) for c in S.orbit_cameras(4)]
+    bg = jnp.ones(3)
+    t0 = time.perf_counter()
+    out = render_image(cfg, params, scene, cams[0], bg, S.NEAR, S.FAR)
+    jax.block_until_ready(out)
+    first = time.perf_counter() - t0
+    for cam in cams[1:]:  # settle any capacity growth (compiles once per grown budget)
+        jax.block_until_ready(render_image(cfg, params, scene, cam, bg, S.NEAR, S.FAR))
+    best, best_cpu = np.inf, np.inf
+    for i in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = render_image(cfg, params, scene, cams[i % len(cams)], bg, S.NEAR, S.FAR)
+        jax.block_until_ready(out)
+        best = min(best, time.perf_counter() - t0)
+        best_cpu = min(best_cpu, time.process_time() - c0)
+    return {
+        "ms_per_image": round(1000 * best, 1),
+        "cpu_ms_per_image": round(1000 * best_cpu, 1),
+        "rays_per_s": round(RES * RES / best),
+        "first_call_s": round(first, 2),
+        "segments_per_ray": round(float(jnp.mean(out.num_segments)), 2),
+        "lost_segments": int(jnp.sum(out.overflow) + jnp.sum(out.dropped)),
+        "params": num_params(params),
+    }
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+
+    backend = jax.default_backend()
+    n_points = {"tiny": 20_000, "default": 100_000, "paper": 2**21}
+    if args.quick:
+        n_points = {"tiny": 5_000, "default": 20_000}
+    rows = []
+    clouds = {}
+    for preset, n in n_points.items():
+        cfg = getattr(RenderConfig, preset)()
+        if n not in clouds:
+            clouds[n] = make_points(n)
+        t0 = time.perf_counter()
+        scene = PointScene.build(clouds[n], cfg)
+        build = time.perf_counter() - t0
+        r = time_render(cfg, scene, args.repeats)
+        rows.append({"setting": f"preset {preset}", "points": n, "depth": scene.tree.depth, "build_s": round(build, 2), **r})
+        print(rows[-1], flush=True)
+        if preset == "default":
+            base = cfg
+            variants = {
+                "specular off (diffuse only)": base.with_effects(specular=False),
+                "IST on": base.with_effects(ist=True),
+                "background sphere on": base.with_effects(background="sphere"),
+                "predicted normals (no point normals)": base.with_effects(point_normals=False),
+                "traditional colour head": base.with_effects(specular=False, color_head="traditional"),
+                "no segment packing": base.replace(segments_per_ray=None),
+            }
+            for name, vcfg in variants.items():
+                rows.append({"setting": f"default, {name}", "points": n, "depth": scene.tree.depth,
+                             "build_s": None, **time_render(vcfg, scene, args.repeats)})
+                print(rows[-1], flush=True)
+
+    device = str(jax.devices()[0])
+    report = {
+        "command": "python experiments/bench_render.py" + (" --quick" if args.quick else ""),
+        "device": device,
+        "jax": jax.__version__,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "image": f"{RES}x{RES}",
+        "rows": rows,
+    }
+    results = json.loads(args.out.read_text()) if args.out.exists() else {}
+    results[backend] = report
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=2) + "\n")
+
+    print(f"\n{device}, jax {jax.__version__}, {RES}x{RES} images\n")
+    base_cpu = next(r["cpu_ms_per_image"] for r in rows if r["setting"] == "preset default")
+    print("| setting | points | ms / image | rays / s | CPU ms / image | vs default (CPU) | first call s | segments / ray |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['setting']} | {r['points']:,} | {r['ms_per_image']:.0f} | {r['rays_per_s']:,} | "
+              f"{r['cpu_ms_per_image']:.0f} | {r['cpu_ms_per_image'] / base_cpu:.2f}x | {r['first_call_s']:.1f} | "
+              f"{r['segments_per_ray']:.2f} |")
+    print(f"\nsaved to {args.out} under '{backend}'")
+
+
+if __name__ == "__main__":
+    main()
