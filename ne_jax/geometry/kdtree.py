@@ -309,50 +309,177 @@ def _check_inputs(xyz, alive) -> tuple[np.ndarray, np.ndarray]:
     return pts, msk
 
 
+def _row_reduce(f, a):
+    """``f``-reduction of each row of ``a [rows, w]`` (elementwise over columns for short rows:
+    numpy's axis reduction is slow there)."""
+    if a.shape[1] > 16:
+        return f.reduce(a, axis=1)
+    r = a[:, 0].copy()
+    for j in range(1, a.shape[1]):
+        f(r, a[:, j], out=r)
+    return r
+
+
 def _split_levels(x: np.ndarray, depth: int):
     """Top-down median splits. Returns per-level ``(split_axis, split_value)`` for levels
-    ``0 .. depth-1`` and the final leaf permutation (local indices, -1 = empty slot)."""
+    ``0 .. depth-1``, the leaf permutation (local indices, -1 = empty slot) and per level
+    ``0 .. depth`` the nodes' point bounding boxes ``(lo, hi)`` (NaN for empty nodes) and counts.
+
+    Each level is a ``[nodes, w]`` array of point rows padded to a common even width ``w`` with at
+    most two pads per row (counts of one level differ by at most one). One ``argpartition`` at
+    ``w/2 - 1`` per level splits every row: its pads are keyed ``+inf`` (sent right) or, when the
+    left child needs one to fill its half, ``-inf``."""
     n = x.shape[0]
-    p = 2**depth
-    rows = np.full((1, p), -1, np.int64)
-    rows[0, :n] = np.arange(n)
+    width = 2 * ((n + 1) // 2)
+    pts = np.full((3, 1, width), np.nan)
+    pts[:, 0, :n] = x.T
+    ids = np.full((1, width), -1, np.int64)
+    ids[0, :n] = np.arange(n)
     cnt = np.array([n], np.int64)
-    axes, values = [], []
+    axes, values, los, his, counts = [], [], [], [], []
     for level in range(depth):
-        nrow, s = rows.shape
-        real = rows >= 0
-        safe = np.where(real, rows, 0)
-        # Widest axis of each node's points (empty / single-point nodes: axis 0).
-        pts = x[safe]  # [nrow, s, 3]
-        lo = np.where(real[..., None], pts, np.inf).min(axis=1)
-        hi = np.where(real[..., None], pts, -np.inf).max(axis=1)
-        ext = np.where(cnt[:, None] > 0, hi - lo, 0.0)
+        nrow, w = ids.shape
+        half = w // 2
+        lo = np.stack([_row_reduce(np.fmin, pts[a]) for a in range(3)], axis=1)
+        hi = np.stack([_row_reduce(np.fmax, pts[a]) for a in range(3)], axis=1)
+        los.append(lo)
+        his.append(hi)
+        counts.append(cnt)
+        ext = np.where(cnt[:, None] > 1, hi - lo, 0.0)  # empty / single-point nodes: axis 0
         axis = np.argmax(ext, axis=1)
-        vals = np.take_along_axis(pts, axis[:, None, None], axis=2)[..., 0]
-        vals = np.where(real, vals, np.inf)
+        rows = np.arange(nrow)
+        key = pts[axis, rows]  # [nrow, w]
+        pad = ids < 0
+        key[pad] = np.inf
         kl = (cnt + 1) // 2
-        kth = np.unique(np.concatenate([kl - 1, kl, cnt - 1, cnt]))
-        kth = kth[(kth >= 0) & (kth < s)]
-        if kth.size:
-            order = np.argpartition(vals, kth, axis=1)
-            rows = np.take_along_axis(rows, order, axis=1)
-            vals = np.take_along_axis(vals, order, axis=1)
-        # Now each row holds its real points first, with the ceil(m/2) smallest before index kl.
-        ar = np.arange(nrow)
-        lmax = vals[ar, np.maximum(kl - 1, 0)]
-        rmin = vals[ar, np.minimum(kl, s - 1)]
+        need = np.flatnonzero(kl < half)  # the left child takes one pad
+        if need.size:
+            key[need, np.argmax(pad[need], axis=1)] = -np.inf
+        order = np.argpartition(key, half - 1, axis=1)
+        flat = (order + (rows * w)[:, None]).ravel()
+        key = key.ravel()[flat].reshape(nrow, w)
+        pts = pts.reshape(3, -1)[:, flat].reshape(3, 2 * nrow, half)
+        ids = ids.ravel()[flat].reshape(2 * nrow, half)
+        lmax = key[:, half - 1]
+        rmin = _row_reduce(np.minimum, key[:, half:])
         has_right = cnt > kl
+        rmin = np.where(has_right, rmin, lmax)  # no inf - inf below
         split = np.where(has_right, 0.5 * (lmax + rmin), np.where(cnt > 0, lmax, 0.0))
         axes.append(axis.astype(np.int32))
         values.append(split)
-        half = s // 2
-        j = np.arange(half)[None, :]
-        left = np.where(j < kl[:, None], rows[:, :half], -1)
-        ridx = np.minimum(kl[:, None] + j, s - 1)
-        right = np.where(j < (cnt - kl)[:, None], np.take_along_axis(rows, ridx, axis=1), -1)
-        rows = np.stack([left, right], axis=1).reshape(2 * nrow, half)
         cnt = np.stack([kl, cnt - kl], axis=1).reshape(-1)
-    return axes, values, rows[:, 0]
+        if half % 2 and level < depth - 1:
+            pts = np.concatenate([pts, np.full((3, 2 * nrow, 1), np.nan)], axis=2)
+            ids = np.concatenate([ids, np.full((2 * nrow, 1), -1, np.int64)], axis=1)
+    # Leaves: one slot each.
+    leaf = ids[:, 0]
+    los.append(pts[:, :, 0].T)
+    his.append(pts[:, :, 0].T)
+    counts.append(cnt)
+    return axes, values, leaf, (los, his, counts)
+
+# Superset widths of the candidate cascade, in units of ``num_candidates``, indexed from the bottom
+# candidate level up (the bottom level keeps only its own candidates). Wider sets mean more distance
+# work per node and fewer fallback queries; these were tuned on surface clouds (1e5..2e6 points,
+# ~1% fallbacks). They change the speed, never the result.
+_SUPERSET_FACTORS = (1.0, 1.85, 2.75, 3.75, 5.0)
+_GROW_BLOCK = 8192  # growing-level nodes per scipy query
+_CASCADE_CHUNK = 32  # growing-level nodes whose subtrees are processed together (cache-sized)
+
+
+def _superset_widths(kc: int, levels: int) -> list[int]:
+    """Width per candidate level, top (growing) level first."""
+    f = _SUPERSET_FACTORS
+    grow = [f[-1] * 1.35 ** (j - len(f) + 1) if j >= len(f) else f[j] for j in range(levels)]
+    return [max(kc, int(round(v * kc))) for v in grow[::-1]]
+
+
+def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
+    """Candidate sets of the levels ``first_level .. depth-1`` (rows in heap order from the first
+    node of ``first_level``): the ``kc`` points of ``xo`` nearest each ``centre``, nearest first,
+    mapped through ``out_index`` (``[n + 1]``, entry ``n`` = the sentinel), and the distance of the
+    farthest one (``radius``).
+
+    A cascade instead of one ``kd.query`` per node. Each growing-level node queries a superset of
+    ``w_0 > kc`` points; each node's children then pick from their parent's superset, sorted by
+    their own distances: the first ``kc`` are their candidates, the first ``w_(l+1)`` their own
+    superset. Each superset ``S`` of a node at ``c`` carries a certified radius ``R``: every point
+    closer than ``R`` to ``c`` is in ``S`` (for a query of ``w`` points, ``R`` = the ``w``-th
+    distance). For a child at ``c'``, ``|c' - c| = off``, every point closer than ``R - off`` to
+    ``c'`` is in ``S`` (triangle inequality), so its pick is exact when its ``kc``-th distance is
+    below ``R - off`` (shrunk by a relative 1e-12 for rounding); its own radius is
+    ``min(R - off, first distance left out)``. Nodes failing the test (about 1% on surface clouds)
+    fall back to a direct query. Distances are computed as scipy does (float64, ``dx² + dy² + dz²``)
+    and sorted as one uint64 key per entry: the squared distance's bits with its low bits replaced
+    by the entry's position in the parent's superset, so distances equal to ~1e-13 relative are
+    ordered by that position (ties: any order is correct)."""
+    n = xo.shape[0]
+    widths = _superset_widths(kc, depth - first_level)
+    total = centre.shape[0]
+    cand = np.empty((total, kc), np.int32)
+    radius = np.empty(total, np.float64)
+    kth = min(kc, n) - 1  # the farthest candidate that exists
+    xs = [np.append(xo[:, a], np.inf) for a in range(3)]  # row n: the sentinel, infinitely far
+    nbits = np.uint64((max(widths) - 1).bit_length())
+    low = np.uint64((1 << int(nbits)) - 1)
+    high = ~low
+
+    def key_of(d2, wp):  # sortable uint64: the squared distance's top bits, then the position
+        key = d2.view(np.uint64) & high
+        key |= np.arange(wp, dtype=np.uint64)
+        return key
+    inf_bits = np.float64(np.inf).view(np.uint64)
+    ngrow = 2**first_level
+
+    def query(c, k):
+        d, i = kd.query(c, k=k, workers=-1 if c.shape[0] >= 256 else 1)
+        return np.reshape(d, (-1, k)), np.reshape(i, (-1, k))
+
+    for b0 in range(0, ngrow, _GROW_BLOCK):
+        b1 = min(b0 + _GROW_BLOCK, ngrow)
+        gd, gi = query(centre[b0:b1], widths[0])
+        cand[b0:b1] = out_index[gi[:, :kc]]
+        radius[b0:b1] = gd[:, kth]
+        for c0 in range(b0, b1, _CASCADE_CHUNK):
+            c1 = min(c0 + _CASCADE_CHUNK, b1)
+            sup, rad, cp = gi[c0 - b0 : c1 - b0], gd[c0 - b0 : c1 - b0, -1], centre[c0:c1]
+            for s in range(1, depth - first_level):
+                w, wp = widths[s], sup.shape[1]
+                npar, m = sup.shape[0], 2 * sup.shape[0]
+                r0 = 2 ** (first_level + s) - ngrow + (c0 << s)
+                c = centre[r0 : r0 + m]
+                c3 = c.reshape(npar, 2, 3)
+                d2 = np.zeros((npar, 2, wp))
+                for a in range(3):
+                    t = xs[a][sup][:, None, :] - c3[:, :, a, None]
+                    t *= t
+                    d2 += t
+                d2 = d2.reshape(m, wp)
+                key = key_of(d2, wp)
+                key.sort(axis=1)
+                head = key[:, : kc + 1] >> nbits
+                near = np.flatnonzero((head[:, 1:] == head[:, :-1]).any(axis=1))
+                if near.size:  # distances equal in their top bits: order those rows exactly
+                    sub = d2[near]
+                    order = np.lexsort((np.broadcast_to(np.arange(wp), sub.shape), sub), axis=-1)
+                    key[near] = np.take_along_axis(key_of(sub, wp), order, axis=1)
+                loc = (key[:, :w] & low).view(np.int64)
+                glob = np.take_along_axis(sup, loc.reshape(npar, 2 * w), axis=1).reshape(m, w)
+                rk = np.sqrt(d2[np.arange(m), loc[:, kth]])
+                off = np.linalg.norm(c - np.repeat(cp, 2, axis=0), axis=1)
+                rc = (np.repeat(rad, 2) - off) * (1.0 - 1e-12)
+                far = np.minimum(key[:, kc - 1] | low, inf_bits)  # an upper bound of the kc-th
+                exact = np.isinf(rc) | (np.sqrt(far.view(np.float64)) < rc)
+                if w < wp:
+                    rc = np.minimum(rc, np.sqrt((key[:, w] & high).view(np.float64)))
+                fb = np.flatnonzero(~exact)
+                if fb.size:
+                    fd, fi = query(c[fb], w)
+                    glob[fb], rk[fb], rc[fb] = fi, fd[:, kth], fd[:, -1]
+                cand[r0 : r0 + m] = out_index[glob[:, :kc]]
+                radius[r0 : r0 + m] = rk
+                sup, rad, cp = glob, rc, c
+    return cand, radius
 
 
 def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | None = None) -> KDTree:
@@ -385,26 +512,15 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     depth = tree_depth(n, cfg)
     p = 2**depth
 
-    kd = cKDTree(x)
-    spacing, lim = _spacing_and_limit(x, kd, cfg)
-    lap("index")
-
-    axes, values, leaf = _split_levels(x, depth)
+    axes, values, leaf, (bb_lo, bb_hi, count) = _split_levels(x, depth)
     lap("splits")
 
-    # Bottom-up bounding boxes and counts, per level.
-    leaf_real = leaf >= 0
-    leaf_pts = x[np.where(leaf_real, leaf, 0)]
-    bb_lo = [None] * (depth + 1)
-    bb_hi = [None] * (depth + 1)
-    count = [None] * (depth + 1)
-    bb_lo[depth] = np.where(leaf_real[:, None], leaf_pts, np.inf)
-    bb_hi[depth] = np.where(leaf_real[:, None], leaf_pts, -np.inf)
-    count[depth] = leaf_real.astype(np.int64)
-    for level in range(depth - 1, -1, -1):
-        bb_lo[level] = np.minimum(bb_lo[level + 1][0::2], bb_lo[level + 1][1::2])
-        bb_hi[level] = np.maximum(bb_hi[level + 1][0::2], bb_hi[level + 1][1::2])
-        count[level] = count[level + 1][0::2] + count[level + 1][1::2]
+    # The scipy tree over the points in slot order: the candidate supersets below are then
+    # spatially local in memory.
+    slot_pts = leaf[leaf >= 0]
+    kd = cKDTree(x[slot_pts])
+    spacing, lim = _spacing_and_limit(x, kd, cfg)
+    lap("index")
 
     # Top-down partition cells, intersected with the grown bounding boxes.
     margin0 = cfg.margin_factor * spacing / math.sqrt(3.0)
@@ -413,7 +529,7 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     lo_levels, hi_levels = [], []
     for level in range(depth + 1):
         m = margin0 * _level_margin_growth(cfg, 2 ** (depth - level))
-        nonempty = (count[level] > 0)[:, None]
+        nonempty = (count[level] > 0)[:, None]  # empty: NaN point boxes
         lo = np.where(nonempty, np.maximum(part_lo, bb_lo[level] - m), 0.0)
         hi = np.where(nonempty, np.minimum(part_hi, bb_hi[level] + m), 0.0)
         lo_levels.append(lo)
@@ -437,16 +553,10 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     first = 2 ** (depth - cfg.num_render_levels - 1) - 1
     last = 2**depth - 1  # exclusive: the leaves have no candidate sets
     centre = 0.5 * (lo_all[first:last].astype(np.float64) + hi_all[first:last].astype(np.float64))
-    cand = np.empty((last - first, kc), np.int32)
-    radius = np.empty((last - first,), np.float64)
-    chunk = 1 << 15
-    for s in range(0, last - first, chunk):
-        d, i = kd.query(centre[s : s + chunk], k=kc, workers=-1)
-        d = np.asarray(d).reshape(-1, kc)
-        i = np.asarray(i).reshape(-1, kc)
-        found = i < n
-        cand[s : s + chunk] = np.where(found, idx[np.minimum(i, n - 1)], cap)
-        radius[s : s + chunk] = np.where(found, d, 0.0).max(axis=1)
+    out_index = np.append(idx[slot_pts], cap).astype(np.int32)
+    cand, radius = _candidate_sets(
+        kd.data, kd, centre, depth - cfg.num_render_levels - 1, depth, kc, out_index
+    )
     # Validity at the rendering levels: the released code's "too spread out" rule.
     r0 = 2 ** (depth - cfg.num_render_levels) - 1
     sl = slice(r0, last)

@@ -110,3 +110,36 @@ def test_config_is_hashable_and_has_presets():
     assert hash(KDTreeConfig.paper()) == hash(KDTreeConfig(depth=21))
     assert KDTreeConfig().num_candidates == 96 and KDTreeConfig().knn_k == 32
     assert KDTreeConfig.tiny().num_candidates == 16
+
+
+@pytest.mark.parametrize("cfg", [KDTreeConfig.tiny(), KDTreeConfig(), KDTreeConfig(depth=13)], ids=["tiny", "default", "depth13"])
+def test_candidates_exact_on_every_node(cfg):
+    """Every candidate row (the cascade's picks and its fallback queries alike) holds exactly the
+    ``num_candidates`` nearest alive points in nondecreasing distance: its distances equal, entry by
+    entry, scipy's sorted k-NN distances from the box centre (only tied points may be swapped)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(11)
+    xyz = np.concatenate(
+        [
+            sphere(3000, seed=7),
+            0.02 * rng.normal(size=(300, 3)).astype(np.float32) + np.float32([0.0, 0.0, 1.0]),
+            np.float32([[6.0, 0, 0], [6.5, 0, 0], [0, -9.0, 0]]),
+        ]
+    )
+    alive = rng.random(len(xyz)) > 0.05
+    alive[-3:] = True
+    tree = build_tree(xyz, alive, cfg)
+    lo, hi = np.asarray(tree.lo, np.float64), np.asarray(tree.hi, np.float64)
+    cand = np.asarray(tree.candidates)
+    cap, kc = len(xyz), cfg.num_candidates
+    rows = np.arange(cand.shape[0])
+    centre = 0.5 * (lo + hi)[tree.first_candidate_node + rows]
+    pts = np.flatnonzero(alive)
+    d_ref, _ = cKDTree(xyz[pts].astype(np.float64)).query(centre, k=kc)
+    x = np.concatenate([xyz.astype(np.float64), np.full((1, 3), np.inf)])
+    got = np.sqrt(sum((x[cand][..., a] - centre[:, None, a]) ** 2 for a in range(3)))
+    np.testing.assert_array_equal(got, d_ref)
+    assert np.all(alive[cand[cand < cap]])
+    real = np.where(cand < cap, cand, -1 - np.arange(kc))  # distinct sentinels
+    assert all(len(set(r)) == kc for r in real)
