@@ -107,8 +107,10 @@ def integrated_dir_enc(direction: jax.Array, roughness: jax.Array, degree: int =
     re, im = [jnp.ones_like(x)], [jnp.zeros_like(x)]
     for _ in range(int(ms.max())):  # (x + i y)^(m+1) = (x + i y)^m (x + i y)
         re, im = re + [re[-1] * x - im[-1] * y], im + [re[-1] * y + im[-1] * x]
-    re = jnp.concatenate(re, axis=-1)[..., ms]
-    im = jnp.concatenate(im, axis=-1)[..., ms]
+    # Static column selection with lax-level slices: fancy indexing by a numpy array mixes int32 and
+    # int64 index arithmetic when float64 is switched on in a process that already traced float32.
+    re = jnp.concatenate([re[m] for m in ms], axis=-1)
+    im = jnp.concatenate([im[m] for m in ms], axis=-1)
     q = _legendre_q(z, degree)
     legendre = jnp.concatenate([q[l][..., m:m + 1] for l, m in zip(ls, ms)], axis=-1)
     att = jnp.exp(-jnp.asarray(attenuation_exponents(degree), dtype) * roughness)
