@@ -35,7 +35,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -383,7 +385,8 @@ def _split_levels(x: np.ndarray, depth: int):
 # work per node and fewer fallback queries; these were tuned on surface clouds (1e5..2e6 points,
 # ~1% fallbacks). They change the speed, never the result.
 _SUPERSET_FACTORS = (1.0, 1.85, 2.75, 3.75, 5.0)
-_GROW_BLOCK = 8192  # growing-level nodes per scipy query
+_GROW_BLOCK = 1024  # growing-level nodes per task (one scipy query, then their subtrees)
+_THREADS = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 _CASCADE_CHUNK = 32  # growing-level nodes whose subtrees are processed together (cache-sized)
 
 
@@ -432,10 +435,10 @@ def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
     ngrow = 2**first_level
 
     def query(c, k):
-        d, i = kd.query(c, k=k, workers=-1 if c.shape[0] >= 256 else 1)
+        d, i = kd.query(c, k=k, workers=1)
         return np.reshape(d, (-1, k)), np.reshape(i, (-1, k))
 
-    for b0 in range(0, ngrow, _GROW_BLOCK):
+    def run_block(b0):
         b1 = min(b0 + _GROW_BLOCK, ngrow)
         gd, gi = query(centre[b0:b1], widths[0])
         cand[b0:b1] = out_index[gi[:, :kc]]
@@ -479,6 +482,14 @@ def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
                 cand[r0 : r0 + m] = out_index[glob[:, :kc]]
                 radius[r0 : r0 + m] = rk
                 sup, rad, cp = glob, rc, c
+
+    threads = min(_THREADS, -(-ngrow // _GROW_BLOCK))
+    if threads > 1:
+        with ThreadPoolExecutor(threads) as pool:  # scipy and numpy release the GIL
+            list(pool.map(run_block, range(0, ngrow, _GROW_BLOCK)))
+    else:
+        for b0 in range(0, ngrow, _GROW_BLOCK):
+            run_block(b0)
     return cand, radius
 
 
