@@ -24,13 +24,11 @@ import numpy as np
 
 def _umask() -> int:
     """The process umask, read without changing it (Linux ``/proc``; 0o022 elsewhere)."""
-    try:
+    with contextlib.suppress(OSError):
         with open("/proc/self/status", encoding="ascii") as f:
             for line in f:
                 if line.startswith("Umask:"):
                     return int(line.split()[1], 8)
-    except OSError:
-        pass
     return 0o022
 
 
@@ -41,9 +39,8 @@ def _fsync_dir(path: Path) -> None:
     except OSError:
         return
     try:
-        os.fsync(fd)
-    except OSError:
-        pass
+        with contextlib.suppress(OSError):
+            os.fsync(fd)
     finally:
         os.close(fd)
 
