@@ -5,9 +5,11 @@
 1. ``intersect``: the minimal intersected voxels of every ray, ``M`` sorted segment slots;
 2. ``level_samples``: ``s`` evenly spaced samples per segment (``s`` by the segment's level) and the
    quadrature weights of the configured rule;
-3. ``knn_interpolate``: features (and only what the declared effects read: point normals, IST) at
-   every sample from the K nearest points of the segment's candidate set;
-4. ``integrate``: the segment means ``f_i, n_i, IST_i`` (a weighted sum with the static weights);
+3. ``knn_integrate``: features (and only what the declared effects read: point normals, IST)
+   interpolated at every sample from the K nearest points of the segment's candidate set, and
+4. integrated into the segment means ``f_i, n_i, IST_i`` with the static quadrature weights — fused:
+   both steps are linear, so the weights are summed per candidate point first and each per-point
+   array is gathered once per segment;
 5. ``shade``: density and colour per segment;
 6. ``composite``: ``alpha = 1 - exp(-sigma * len)`` with ``len`` in units of the point spacing
    (DESIGN.md), transmittance in log space, background behind.
@@ -34,10 +36,10 @@ from tqdm.auto import tqdm
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
-from ne_jax.geometry.knn import knn_interpolate
+from ne_jax.geometry.knn import knn_integrate
 from ne_jax.geometry.points import PointState
 from ne_jax.render.composite import composite
-from ne_jax.render.quadrature import QuadratureConfig, integrate, level_samples
+from ne_jax.render.quadrature import QuadratureConfig, level_samples
 from ne_jax.render.shading import Effects, ShadingConfig, background_color, shade
 
 
@@ -155,6 +157,37 @@ def _values_needed(points: PointState, effects: Effects) -> dict:
     return values
 
 
+@struct.dataclass
+class SegmentAux:
+    """Per-segment quantities of a render, for training losses (``[R, M, ...]``, ``M`` the segment
+    slots per ray; zeros in slots without a rendered segment).
+
+    Attributes:
+        valid: ``[R, M]`` bool, the slot holds a rendered segment.
+        weights: ``[R, M]`` compositing weights ``T_i alpha_i``.
+        sigma: ``[R, M]`` density per point-spacing unit.
+        lengths: ``[R, M]`` segment length in point spacings (0 in empty slots).
+        pred_normal: ``[R, M, 3]`` unit predicted normal of the colour model.
+        shading_normal: ``[R, M, 3]`` the normal the view direction was reflected about (zeros when
+            the scene shades without one).
+        view_dir: ``[R, M, 3]`` unit ray direction (camera towards the scene).
+        confidence: ``[R, M]`` integrated ``sum_k w_k c_k`` (KNN weights ``w``, point confidences ``c``).
+        normal_moment: ``[R, M, 3, 3]`` integrated ``sum_k w_k c_k n_k n_k^T`` of the point normals
+            (sign-free: Open3D normals are unoriented); with unit ``p``,
+            ``trace(A) - p^T A p = sum_k w_k c_k |n_k|^2 (1 - (p.n_k)^2)``.
+    """
+
+    valid: jax.Array
+    weights: jax.Array
+    sigma: jax.Array
+    lengths: jax.Array
+    pred_normal: jax.Array
+    shading_normal: jax.Array
+    view_dir: jax.Array
+    confidence: jax.Array
+    normal_moment: jax.Array
+
+
 def render_rays(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
                 key: jax.Array | None = None) -> RenderOut:
     """Render ``rays`` (``[R]``) of ``scene`` with colour-model ``params``.
@@ -163,6 +196,19 @@ def render_rays(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
     background; the ``"sphere"`` background is learned). ``key``: needed only by the stochastic
     integration rule. Pure and differentiable in ``params``, the scene's per-point arrays (positions
     through the KNN distances; the tree topology is held fixed) and ``rays``."""
+    return _render(cfg, params, scene, rays, background, key, aux=False)[0]
+
+
+def render_rays_with_aux(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
+                         key: jax.Array | None = None) -> tuple[RenderOut, SegmentAux]:
+    """:func:`render_rays` plus the per-segment :class:`SegmentAux` the training losses need.
+    The ``RenderOut`` is the one :func:`render_rays` returns; the extra KNN values (confidence and
+    normal moment) are interpolated only here."""
+    return _render(cfg, params, scene, rays, background, key, aux=True)
+
+
+def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
+            aux: bool) -> tuple[RenderOut, SegmentAux | None]:
     tcfg = cfg.tree
     tree = scene.tree
     seg = intersect(tree, rays, tcfg)
@@ -178,9 +224,9 @@ def render_rays(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
         live = jnp.arange(budget) < jnp.sum(seg.valid)
         keep = flat(jnp.zeros_like(seg.valid)).at[jnp.where(live, slot, r * m)].set(True, mode="drop").reshape(r, m)
     ray = slot // m
-    sigma, rgb, normal = _shade_segments(
+    sigma, rgb, normal, extra = _shade_segments(
         cfg, params, scene, rays.origin[ray], rays.direction[ray], flat(seg.t_lo)[slot], flat(seg.t_hi)[slot],
-        flat(seg.node)[slot], (tree.depth - 1) - flat(seg.level)[slot], key)
+        flat(seg.node)[slot], (tree.depth - 1) - flat(seg.level)[slot], key, aux)
 
     def unpack(v):  # packed [budget, ...] -> [R, M, ...], zeros in slots without a live segment
         target = jnp.where(live, slot, r * m)
@@ -189,28 +235,50 @@ def render_rays(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
 
     lengths = (seg.t_hi - seg.t_lo) / tree.spacing
     bg = background_color(cfg.shading, params, rays.origin, rays.direction, background)
-    comp = composite(unpack(sigma), unpack(rgb), lengths, keep, 0.5 * (seg.t_lo + seg.t_hi), bg,
-                     normals=None if normal is None else unpack(normal))
+    sigma_full = unpack(sigma)
+    normal_full = None if normal is None else unpack(normal)
+    comp = composite(sigma_full, unpack(rgb), lengths, keep, 0.5 * (seg.t_lo + seg.t_hi), bg,
+                     normals=normal_full)
     normal_map = comp.normal if comp.normal is not None else jnp.zeros_like(comp.rgb)
-    return RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
-                     num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
-                     dropped=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32))
+    out = RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
+                    num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
+                    dropped=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32))
+    if not aux:
+        return out, None
+    zeros3 = jnp.zeros((r, m, 3), comp.rgb.dtype)
+    seg_aux = SegmentAux(
+        valid=keep, weights=comp.weights, sigma=sigma_full, lengths=jnp.where(keep, lengths, 0.0),
+        pred_normal=unpack(extra["pred_normal"]),
+        shading_normal=zeros3 if normal_full is None else normal_full,
+        view_dir=jnp.where(keep[..., None], rays.direction[:, None, :], 0.0),
+        confidence=unpack(extra["confidence"]), normal_moment=unpack(extra["normal_moment"]))
+    return out, seg_aux
 
 
 def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direction, t_lo, t_hi, node,
-                    level_index, key):
+                    level_index, key, aux: bool = False):
     """Density, colour and shading normal of ``[B]`` segments (rays ``origin``/``direction`` ``[B, 3]``,
-    ``level_index`` 0 = bottom rendering level): sample, interpolate, integrate, shade."""
+    ``level_index`` 0 = bottom rendering level): sample, interpolate, integrate, shade. With ``aux``,
+    the fourth result holds the predicted normal ``[B, 3]``, the integrated confidence ``[B]`` and
+    normal moment ``[B, 3, 3]`` (see :class:`SegmentAux`); otherwise it is ``None``."""
     effects = cfg.shading.effects
     t, w = level_samples(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
     pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
-    values, _ = knn_interpolate(scene.points, scene.tree, pos, node, cfg.tree, cfg.exact_knn,
-                                _values_needed(scene.points, effects))
-    feature = integrate(values["feature"], w, axis=-2)  # [B, F]
-    normal = integrate(values["normal"], w, axis=-2) if "normal" in values else None
-    ist = integrate(values["ist"], w, axis=-3) if "ist" in values else None
-    out = shade(cfg.shading, params, feature, normal, direction, ist)
-    return out.sigma, out.rgb, out.shading_normal
+    needed = _values_needed(scene.points, effects)
+    if aux:
+        conf = scene.points.confidence
+        n = scene.points.normal
+        needed["confidence"] = conf[:, None]
+        needed["normal_moment"] = (conf[:, None, None] * n[:, :, None] * n[:, None, :]).reshape(-1, 9)
+    # Interpolation and quadrature fused (both linear): segment means straight from the candidates.
+    means = knn_integrate(scene.points, scene.tree, pos, node, w, needed, cfg.tree, cfg.exact_knn)
+    out = shade(cfg.shading, params, means["feature"], means.get("normal"), direction, means.get("ist"))
+    extra = None
+    if aux:
+        extra = {"pred_normal": out.pred_normal,
+                 "confidence": means["confidence"][..., 0],
+                 "normal_moment": means["normal_moment"].reshape(-1, 3, 3)}
+    return out.sigma, out.rgb, out.shading_normal, extra
 
 
 @functools.partial(jax.jit, static_argnums=0)
