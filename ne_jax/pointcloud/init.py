@@ -158,29 +158,35 @@ def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return top * (1 - fy) + bot * fy
 
 
+def _carves(views: Views, view: int, xyz: np.ndarray, alpha_threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(carved [N], in_frustum [N])`` of points ``[N, 3]`` in one view."""
+    h, w = views.alpha.shape[1:]
+    u, v, depth = views.project(view, xyz)
+    inside = (depth > 1e-6) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
+    carved = np.zeros(len(xyz), bool)
+    carved[inside] = _bilinear(views.alpha[view], u[inside], v[inside]) <= alpha_threshold
+    return carved, inside
+
+
 def hull_test(views: Views, xyz: np.ndarray, alpha_threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """Visual-hull membership of points ``[N, 3]``.
 
     Returns ``(carved [N] bool, seen [N] int)``: ``carved`` when some view sees the point (in front
     of the camera, inside the image) with alpha ``<= alpha_threshold`` there; ``seen`` the number of
-    views whose frustum holds the point. Points are dropped from later views once carved."""
+    views whose frustum holds the point, counted until the point is carved (points are dropped from
+    later views once carved)."""
     xyz = np.asarray(xyz, np.float64)
     n = xyz.shape[0]
-    h, w = views.alpha.shape[1:]
     carved = np.zeros(n, bool)
     seen = np.zeros(n, np.int32)
     live = np.arange(n)
     for k in range(views.num_views):
         if live.size == 0:
             break
-        u, v, depth = views.project(k, xyz[live])
-        inside = (depth > 1e-6) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
-        idx = live[inside]
-        seen[idx] += 1
-        a = _bilinear(views.alpha[k], u[inside], v[inside])
-        out = idx[a <= alpha_threshold]
-        carved[out] = True
-        live = live[~carved[live]]
+        c, inside = _carves(views, k, xyz[live], alpha_threshold)
+        seen[live[inside]] += 1
+        carved[live[c]] = True
+        live = live[~c]
     return carved, seen
 
 
@@ -341,24 +347,36 @@ def carve_visual_hull(cfg: CarveConfig, views: Views) -> InitialCloud:
 
 def _snap(views: Views, xyz, step, alpha_threshold, steps) -> tuple[np.ndarray, np.ndarray]:
     """Bisect the hull boundary on ``xyz + t * step``, ``t in [-1, 1.5]``; ``step`` ``[N, 3]`` is the
-    outward direction scaled by the voxel size. Returns new points and a ``[N]`` snapped mask."""
+    outward direction scaled by the voxel size. Returns new points and a ``[N]`` snapped mask.
+
+    Only the *critical* views of a point take part in the bisection: those where the inner end is
+    inside the mask and the outer end is carved. Other views cannot change the answer along the
+    segment, up to silhouettes that fold within the segment's footprint (a pixel or two)."""
     a, b = xyz - step, xyz + 1.5 * step
-    moving = np.linalg.norm(step, axis=1) > 0
-
-    def inside(p):
-        carved, _ = hull_test(views, p, alpha_threshold)
-        return ~carved
-
-    ok = moving & inside(a) & ~inside(b)
-    a, b = a[ok], b[ok]
+    n, nv = len(xyz), views.num_views
+    inner_ok = np.linalg.norm(step, axis=1) > 0
+    critical = np.zeros((nv, n), bool)
+    for k in range(nv):
+        carved_a, _ = _carves(views, k, a, alpha_threshold)
+        carved_b, _ = _carves(views, k, b, alpha_threshold)
+        inner_ok &= ~carved_a
+        critical[k] = carved_b
+    ok = inner_ok & critical.any(0)
+    idx = np.flatnonzero(ok)
+    lo, hi = a[idx], b[idx]
+    pairs = [np.flatnonzero(critical[k, idx]) for k in range(nv)]
     for _ in range(steps):
-        mid = 0.5 * (a + b)
-        ins = inside(mid)
-        a = np.where(ins[:, None], mid, a)
-        b = np.where(ins[:, None], b, mid)
-    out = xyz.copy()
-    out[ok] = 0.5 * (a + b)
-    return out, ok
+        mid = 0.5 * (lo + hi)
+        out = np.zeros(len(idx), bool)
+        for k, sel in enumerate(pairs):
+            if sel.size:
+                c, _ = _carves(views, k, mid[sel], alpha_threshold)
+                out[sel[c]] = True
+        lo = np.where(out[:, None], lo, mid)
+        hi = np.where(out[:, None], mid, hi)
+    result = xyz.copy()
+    result[idx] = 0.5 * (lo + hi)
+    return result, ok
 
 
 # ----------------------------------------------------------------------------------------------
