@@ -25,6 +25,15 @@ inside of a cup seen from outside) stay filled, and the hull is only as sharp as
 pixel at the object's distance). Photo-consistency refinement (colour variance across views with a
 depth test) is **not implemented**; growing and pruning during training are what refine the cloud.
 
+Snapping puts points *on the hull* (analytic sphere, 40 views: mean error 0.04 voxel sizes instead
+of 0.48). Where the hull is loose (concavities), unsnapped points half a voxel inside it happen to
+lie slightly closer to the true surface: on the tiny benchmark (``experiments/initial_cloud.py``)
+snapping lowered the symmetric Chamfer distance on stool and glossy and raised it on cup and blocks,
+mean over the four scenes 0.0287 snapped vs 0.0281 unsnapped (world units, 128^3 voxels of 0.017).
+
+Time (2 shared CPU cores): a 128^3 grid carved by 100 views of 200 x 200 took 13-21 s, snapping
+100,000 points 8 s more; the tiny benchmark (24 views of 64 x 64, 20,000 points) 2-6 s per scene.
+
 Shapes: ``V`` views, ``H x W`` images, ``N`` points.
 """
 

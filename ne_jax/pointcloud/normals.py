@@ -32,8 +32,8 @@ Measured on the four benchmark scenes at the ``tiny`` preset (``experiments/init
 ``experiments/results/initial_cloud.json``, block ``orientation``): fraction of normals with
 ``cos > 0`` to the nearest ground-truth normal, mean over the scenes, on carved clouds and on the
 ground-truth samples' positions: ``visibility`` 0.95 / 0.87, ``tangent_plane`` 0.94 / 0.76,
-``visibility_votes`` 0.86 / 0.80, ``nearest_camera`` 0.76 / 0.65 (numbers from the development
-run; the JSON holds the committed run). ``tangent_plane`` is excellent on one closed hull but
+``visibility_votes`` 0.87 / 0.80, ``nearest_camera`` 0.76 / 0.65, ``none`` 0.47 / 0.50. ``visibility``
+is the default. ``tangent_plane`` is excellent on one closed hull but
 takes a single global sign, which flips whole parts of multi-part clouds; it is also 5-20x slower.
 
 Degenerate input: an empty cloud gives ``[0, 3]``; a cloud with fewer than 3 distinct points, or
