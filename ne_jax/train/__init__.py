@@ -1,0 +1,41 @@
+"""Training: ray batches, losses, the train state and the jitted step (issue 5, part 3)."""
+
+from ne_jax.train.losses import (
+    TERMS,
+    LossConfig,
+    confidence_loss,
+    loss_terms,
+    normal_loss,
+    normal_mismatch,
+    orientation_loss,
+    photometric_loss,
+    sparsity_loss,
+    total_loss,
+)
+from ne_jax.train.sampler import Batch, RayPool, SamplerConfig, band_mask, build_pool, pixel_index_rays, sample_batch
+from ne_jax.train.state import TrainConfig, TrainState, init_train_state
+from ne_jax.train.step import make_train_step
+
+__all__ = [
+    "TERMS",
+    "Batch",
+    "LossConfig",
+    "RayPool",
+    "SamplerConfig",
+    "TrainConfig",
+    "TrainState",
+    "band_mask",
+    "build_pool",
+    "confidence_loss",
+    "init_train_state",
+    "loss_terms",
+    "make_train_step",
+    "normal_loss",
+    "normal_mismatch",
+    "orientation_loss",
+    "photometric_loss",
+    "pixel_index_rays",
+    "sample_batch",
+    "sparsity_loss",
+    "total_loss",
+]

@@ -1,0 +1,116 @@
+"""Training configuration and state.
+
+:class:`TrainConfig` holds the static settings of the step (loss weights, optimiser schedule);
+:class:`TrainState` is the frozen pytree the step maps to a new one. What is trained: the colour
+model's parameters and the per-point ``feature`` and ``conf_logit`` arrays (the paper: "point
+features and confidences are parameters"). Point positions, normals, ISTs, ``alive`` and the K-D tree
+are fixed during a step; they live in the :class:`~ne_jax.render.renderer.PointScene` passed to the
+step (whose own ``feature``/``conf_logit`` are replaced by the state's).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from ne_jax.geometry.points import PointState
+from ne_jax.render.renderer import PointScene, RenderConfig
+from ne_jax.render.shading import init_color_model
+from ne_jax.train.losses import LossConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Static training-step settings (hashable)."""
+
+    loss: LossConfig = LossConfig()
+    """Loss weights and shapes."""
+    lr: float = 2e-3
+    """Adam's peak learning rate (DESIGN.md facts: 2e-3)."""
+    total_steps: int = 100_000
+    """Steps of the cosine decay; the rate stays at its floor afterwards."""
+    lr_final_fraction: float = 0.01
+    """Floor of the cosine decay as a fraction of ``lr`` (``alpha`` of ``optax.cosine_decay_schedule``;
+    our choice, DESIGN.md says only "cosine decay")."""
+    adam_b1: float = 0.9
+    """Adam's first-moment decay."""
+    adam_b2: float = 0.999
+    """Adam's second-moment decay."""
+    adam_eps: float = 1e-8
+    """Adam's epsilon."""
+
+    def __post_init__(self):
+        if not self.lr > 0:
+            raise ValueError(f"TrainConfig.lr: expected > 0, found {self.lr}")
+        if int(self.total_steps) < 1:
+            raise ValueError(f"TrainConfig.total_steps: expected an integer >= 1, found {self.total_steps}")
+        if not 0.0 <= self.lr_final_fraction <= 1.0:
+            raise ValueError(f"TrainConfig.lr_final_fraction: expected a value in [0, 1], found {self.lr_final_fraction}")
+
+    def schedule(self) -> optax.Schedule:
+        """Learning rate by step: cosine decay from ``lr`` to ``lr * lr_final_fraction``."""
+        return optax.cosine_decay_schedule(self.lr, int(self.total_steps), alpha=self.lr_final_fraction)
+
+    def optimizer(self) -> optax.GradientTransformation:
+        """Adam with :meth:`schedule`, on all trainables alike."""
+        return optax.adam(self.schedule(), b1=self.adam_b1, b2=self.adam_b2, eps=self.adam_eps)
+
+    def replace(self, **changes) -> "TrainConfig":
+        return dataclasses.replace(self, **changes)
+
+
+@struct.dataclass
+class TrainState:
+    """What one training step reads and writes.
+
+    Attributes:
+        params: colour-model parameters (``init_color_model``'s tree).
+        points: ``{"feature": [C, F], "conf_logit": [C]}`` the trainable per-point arrays.
+        opt_state: optax state of :meth:`TrainConfig.optimizer` over ``trainables``.
+        step: ``[]`` int32 steps applied (skipped steps do not count).
+        key: PRNG key (split each step; used by the stochastic integration rule).
+        skipped: ``[]`` int32 steps refused because something was non-finite.
+    """
+
+    params: dict
+    points: dict
+    opt_state: optax.OptState
+    step: jax.Array
+    key: jax.Array
+    skipped: jax.Array
+
+    @property
+    def trainables(self) -> dict:
+        """``{"params": ..., "points": ...}``: the tree the optimiser updates."""
+        return {"params": self.params, "points": self.points}
+
+    def point_state(self, base: PointState) -> PointState:
+        """``base`` with the trained ``feature`` and ``conf_logit``."""
+        return base.replace(feature=self.points["feature"], conf_logit=self.points["conf_logit"])
+
+    def scene(self, base: PointScene) -> PointScene:
+        """``base`` (tree and fixed point arrays) with the trained per-point arrays."""
+        return base.replace(points=self.point_state(base.points))
+
+
+def init_train_state(cfg: TrainConfig, render_cfg: RenderConfig, points: PointState,
+                     key: jax.Array) -> TrainState:
+    """A fresh state: random colour model (``render_cfg.shading``), the cloud's features and
+    confidence logits as trainables, Adam's zero moments, step 0."""
+    if points.feature_dim != render_cfg.shading.feature_dim:
+        raise ValueError(f"points.feature: width {points.feature_dim} != render_cfg.shading.feature_dim "
+                         f"{render_cfg.shading.feature_dim}")
+    k_model, k_state = jax.random.split(key)
+    params = init_color_model(render_cfg.shading, k_model)
+    pts = {"feature": jnp.asarray(points.feature, jnp.float32),
+           "conf_logit": jnp.asarray(points.conf_logit, jnp.float32)}
+    opt_state = cfg.optimizer().init({"params": params, "points": pts})
+    return TrainState(params=params, points=pts, opt_state=opt_state, step=jnp.zeros((), jnp.int32),
+                      key=k_state, skipped=jnp.zeros((), jnp.int32))
+
+
+__all__ = ["TrainConfig", "TrainState", "init_train_state"]

@@ -1,0 +1,121 @@
+"""The jitted training step: render a batch, the losses, Adam, and a guard against non-finite values.
+
+``step_fn = make_train_step(cfg, render_cfg)``; ``state, metrics = step_fn(state, scene, batch)``.
+It compiles once per ``(cfg, render_cfg)`` and per shape of its inputs (fixed: the batch size is
+static in the sampler, the cloud's capacity in the scene), so a training loop never recompiles.
+
+Gradients: one forward pass through :func:`~ne_jax.render.renderer.render_rays_with_aux` and one
+VJP of it, split in two stages: the render (trainables -> per-ray colours and per-segment
+quantities) and the losses (those -> the terms). The loss stage is cheap, so each term also gets
+its own gradient w.r.t. the render's outputs; the total gradient is the loss VJP with the weights
+as cotangent, pulled back once through the render.
+
+Non-finite guard: the step writes nothing when a loss term, a gradient or the updated trainables
+hold a NaN or Inf; it returns the old state with ``skipped + 1`` (``step`` unchanged). The metrics
+say what went bad: ``finite/<term>`` is False when the term's value, or its gradient w.r.t. the
+render's outputs (and the confidences it reads directly), is non-finite; ``finite/grad`` is False
+when the gradient w.r.t. the trainables is -- with every ``finite/<term>`` True, the NaN arose in
+the render's backward pass, which all rendered terms share (it cannot be attributed to one term
+without a backward pass per term); ``finite/update`` is False when the updated trainables are not
+finite (e.g. a parameter that was already NaN, which has a zero gradient where it is unused).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from ne_jax.render.renderer import PointScene, RenderConfig, SegmentAux, render_rays_with_aux
+from ne_jax.train.losses import loss_terms
+from ne_jax.train.sampler import Batch
+from ne_jax.train.state import TrainConfig, TrainState
+
+
+def _all_finite(tree) -> jax.Array:
+    leaves = jax.tree_util.tree_leaves(tree)
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
+
+
+def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
+    """The jitted ``step_fn(state, scene, batch) -> (state, metrics)``.
+
+    Args (of ``step_fn``):
+        state: :class:`~ne_jax.train.state.TrainState`.
+        scene: :class:`~ne_jax.render.renderer.PointScene` with the fixed arrays (positions,
+            normals, ISTs, ``alive``) and the tree; its ``feature``/``conf_logit`` are ignored.
+        batch: :class:`~ne_jax.train.sampler.Batch` (``[B]`` rays, targets ``[B, 4]``).
+
+    Metrics (scalars): ``loss/<term>`` (unweighted), ``loss/total`` (weighted), ``finite/<term>``,
+    ``finite/grad``, ``finite/update``, ``ok`` (the step was applied), ``psnr`` (of the batch MSE), ``lr`` (the rate
+    used), ``grad_norm``, ``opacity`` (mean over the batch), ``overflow``/``dropped`` (segments
+    lost to traversal capacities / the packing budget, summed over the batch; should be 0).
+    """
+    weights = cfg.loss.weights()
+    optimizer = cfg.optimizer()
+    schedule = cfg.schedule()
+    stochastic = render_cfg.quadrature.rule == "stochastic"
+
+    def step_fn(state: TrainState, scene: PointScene, batch: Batch):
+        key, k_render = jax.random.split(state.key)
+        target = batch.rays.target[:, :3]
+
+        def render_part(trainables):  # trainables -> the float inputs of the losses
+            pts = scene.points.replace(feature=trainables["points"]["feature"],
+                                       conf_logit=trainables["points"]["conf_logit"])
+            out, aux = render_rays_with_aux(render_cfg, trainables["params"], scene.replace(points=pts),
+                                            batch.rays, batch.background, k_render if stochastic else None)
+            inter = {f.name: getattr(aux, f.name) for f in dataclasses.fields(aux) if f.name != "valid"}
+            inter.update(rgb=out.rgb, conf_logit=pts.conf_logit)
+            return inter, (out, aux.valid, pts)
+
+        def loss_part(inter, fixed):  # the float inputs -> the loss terms (cheap; no render)
+            out, valid, pts = fixed
+            aux = SegmentAux(valid=valid, **{k: v for k, v in inter.items() if k not in ("rgb", "conf_logit")})
+            return loss_terms(cfg.loss, out.replace(rgb=inter["rgb"]), aux, target,
+                              pts.replace(conf_logit=inter["conf_logit"]))
+
+        trainables = state.trainables
+        inter, render_vjp, fixed = jax.vjp(render_part, trainables, has_aux=True)
+        terms, loss_vjp = jax.vjp(lambda x: loss_part(x, fixed), inter)
+        # per-term gradients w.r.t. the render's outputs: separate VJPs of the (cheap) loss part, so a
+        # NaN in one term never leaks into another's flag through a 0 * NaN
+        inter_grads = {k: jax.grad(lambda x, k=k: loss_part(x, fixed)[k])(inter) for k in terms}
+        (inter_cot,) = loss_vjp({k: jnp.asarray(w, terms[k].dtype) for k, w in weights.items()})
+        (grads,) = render_vjp(inter_cot)
+        total = sum(jnp.asarray(w, terms[k].dtype) * terms[k] for k, w in weights.items())
+        updates, opt_state = optimizer.update(grads, state.opt_state, trainables)
+        new_trainables = optax.apply_updates(trainables, updates)
+
+        term_ok = {k: jnp.isfinite(v) & _all_finite(inter_grads[k]) for k, v in terms.items()}
+        grad_ok = _all_finite(grads)
+        update_ok = _all_finite(new_trainables)
+        ok = jnp.all(jnp.stack(list(term_ok.values()))) & grad_ok & update_ok
+        out = fixed[0]
+
+        applied = TrainState(params=new_trainables["params"], points=new_trainables["points"],
+                             opt_state=opt_state, step=state.step + 1, key=key, skipped=state.skipped)
+        refused = state.replace(skipped=state.skipped + 1)
+        new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), applied, refused)
+
+        mse = terms["photometric"] if "photometric" in terms else jnp.mean(jnp.square(out.rgb - target))
+        metrics = {f"loss/{k}": v for k, v in terms.items()}
+        metrics["loss/total"] = total
+        metrics.update({f"finite/{k}": term_ok[k] for k in terms})
+        metrics["finite/grad"] = grad_ok
+        metrics["finite/update"] = update_ok
+        metrics["ok"] = ok
+        metrics["psnr"] = -10.0 * jnp.log10(jnp.maximum(mse, 1e-10))
+        metrics["lr"] = jnp.asarray(schedule(state.step), jnp.float32)
+        metrics["grad_norm"] = optax.tree.norm(grads)
+        metrics["opacity"] = jnp.mean(out.opacity)
+        metrics["overflow"] = jnp.sum(out.overflow)
+        metrics["dropped"] = jnp.sum(out.dropped)
+        return new_state, metrics
+
+    return jax.jit(step_fn)
+
+
+__all__ = ["make_train_step"]
