@@ -248,3 +248,51 @@ def knn_interpolate(
     if dense is not None:
         return _interpolate_shared(*dense, values), nb
     return interpolate(nb, values), nb
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "exact"))
+def knn_integrate(
+    state: PointState,
+    tree: KDTree,
+    points: jax.Array,
+    segment_node: jax.Array,
+    sample_weight: jax.Array,
+    values: Any,
+    cfg: KDTreeConfig = KDTreeConfig(),
+    exact: bool = False,
+) -> Any:
+    """Quadrature of KNN-interpolated per-point arrays along segments, in one pass.
+
+    ``points`` ``[B, S, 3]`` are the ``S`` samples of ``B`` segments (segment ``b`` in the voxel of
+    ``segment_node[b]``), ``sample_weight`` ``[B, S]`` the quadrature weights. Returns, for every leaf
+    ``v [C, ...]`` of ``values``, ``sum_s w_s sum_k a_sk v[idx_sk]`` with shape ``[B, ...]`` — the
+    same as integrating :func:`knn_interpolate`'s output, but since both sums are linear the sample
+    and neighbour weights are first summed per *candidate* (``[B, num_candidates]``) and each leaf is
+    gathered once per segment: ``num_candidates`` rows instead of ``S * K`` (up to 7x fewer at the
+    paper's ``S = 22, K = 32, 96`` candidates). ``exact`` falls back to integrating the interpolation.
+    """
+    if points.ndim != 3 or segment_node.shape != points.shape[:1] or sample_weight.shape != points.shape[:2]:
+        raise ValueError(
+            f"knn_integrate: expected points [B, S, 3], segment_node [B], sample_weight [B, S]; found "
+            f"{points.shape}, {segment_node.shape}, {sample_weight.shape}"
+        )
+    weight = sample_weight.astype(points.dtype)
+    if exact:
+        interp, _ = knn_interpolate(state, tree, points, segment_node, cfg, True, values)
+        return jax.tree_util.tree_map(
+            lambda v: jnp.einsum("bs,bs...->b...", weight.astype(v.dtype), v), interp)
+    if cfg.num_candidates != tree.candidates.shape[-1]:
+        raise ValueError(
+            f"cfg.num_candidates: expected the tree's candidate width {tree.candidates.shape[-1]}, "
+            f"found {cfg.num_candidates}"
+        )
+    eps = (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)
+    nb, ci, j = _candidate_search(state, tree, points, segment_node.astype(jnp.int32), cfg.knn_k, eps)
+    b = jnp.arange(ci.shape[0])[:, None, None]
+    per_candidate = jnp.zeros(ci.shape, points.dtype).at[b, j].add(weight[:, :, None] * nb.weight)
+
+    def one(v):
+        g = v.reshape(v.shape[0], -1)[ci]  # [B, Kc, D]
+        return jnp.einsum("bc,bcd->bd", per_candidate.astype(g.dtype), g).reshape(ci.shape[:1] + v.shape[1:])
+
+    return jax.tree_util.tree_map(one, values)
