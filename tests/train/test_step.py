@@ -174,8 +174,8 @@ def test_training_reduces_photometric_loss_without_recompiling(world):
     assert int(state.step) == STEPS and int(state.skipped) == 0
     assert all(np.isfinite(losses))
     mse1 = _eval_mse(state, world, held_out)
-    # observed (blocks, 32x32, 6 views, 512 rays, 60 steps): held-out MSE 0.075 -> 0.02 (~27%);
-    # per-batch loss 0.077 -> ~0.02
+    # observed (blocks, 32x32, 6 views, 512 rays, 40 steps, jax 0.10.2 CPU): held-out MSE
+    # 0.0729 -> 0.0230 (32%); per-batch loss, mean of the first 3 0.074 -> mean of the last 5 0.030 (41%)
     assert mse1 < 0.5 * mse0, (mse0, mse1)
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:3]), losses
 
