@@ -99,7 +99,8 @@ class Views:
 
     ``alpha`` ``[V, H, W]`` float32 in ``[0, 1]`` (row 0 at the top); ``c2w`` ``[V, 4, 4]``
     camera-to-world in the OpenGL convention (camera looks down ``-z``, ``+y`` up); ``fx, fy, cx,
-    cy`` pixel intrinsics shared by all views, pixel centres at ``i + 0.5``."""
+    cy`` pixel intrinsics shared by all views, pixel centres at ``i + 0.5``; ``rgb`` ``[V, H, W, 3]``
+    float32 straight colours, or ``None`` (only photo-consistency needs them)."""
 
     alpha: np.ndarray
     c2w: np.ndarray
@@ -107,14 +108,16 @@ class Views:
     fy: float
     cx: float
     cy: float
+    rgb: np.ndarray | None = None
 
     @classmethod
     def from_split(cls, split) -> Views:
         """From a :class:`ne_jax.data.nerf_synthetic.SceneSplit` (its images' alpha channel)."""
-        return cls.create(split.images[..., 3], split.c2w, split.fx, split.fy, split.cx, split.cy)
+        images = split.images
+        return cls.create(images[..., 3], split.c2w, split.fx, split.fy, split.cx, split.cy, rgb=images[..., :3])
 
     @classmethod
-    def create(cls, alpha, c2w, fx, fy, cx, cy) -> Views:
+    def create(cls, alpha, c2w, fx, fy, cx, cy, rgb=None) -> Views:
         """Checked constructor; raises ``ValueError`` naming the argument."""
         alpha = np.asarray(alpha, np.float32)
         c2w = np.asarray(c2w, np.float64)
@@ -129,7 +132,13 @@ class Views:
         for name, v in (("fx", fx), ("fy", fy)):
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive focal length in pixels, found {v!r}")
-        return cls(alpha, c2w, float(fx), float(fy), float(cx), float(cy))
+        if rgb is not None:
+            rgb = np.asarray(rgb, np.float32)
+            if rgb.shape != alpha.shape + (3,):
+                raise ValueError(f"rgb: expected shape {alpha.shape + (3,)} like alpha plus 3 channels, found {rgb.shape}")
+            if not np.isfinite(rgb).all():
+                raise ValueError("rgb: expected finite values, found NaN/inf")
+        return cls(alpha, c2w, float(fx), float(fy), float(cx), float(cy), rgb)
 
     @property
     def num_views(self) -> int:
@@ -153,15 +162,17 @@ class Views:
 
 
 def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of ``img`` ``[H, W]`` at continuous pixel coordinates (centres at ``i+0.5``),
-    clamped at the border."""
-    h, w = img.shape
+    """Bilinear lookup of ``img`` ``[H, W]`` or ``[H, W, C]`` at continuous pixel coordinates ``[N]``
+    (centres at ``i + 0.5``), clamped at the border; returns ``[N]`` or ``[N, C]``."""
+    h, w = img.shape[:2]
     x = np.clip(u - 0.5, 0.0, w - 1.0)
     y = np.clip(v - 0.5, 0.0, h - 1.0)
     x0 = np.minimum(x.astype(np.int64), w - 2) if w > 1 else np.zeros(x.shape, np.int64)
     y0 = np.minimum(y.astype(np.int64), h - 2) if h > 1 else np.zeros(y.shape, np.int64)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+    if img.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
     top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
     bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
     return top * (1 - fy) + bot * fy
@@ -199,6 +210,33 @@ def hull_test(views: Views, xyz: np.ndarray, alpha_threshold: float) -> tuple[np
     return carved, seen
 
 
+def visibility(views: Views, xyz: np.ndarray, spacing: float, tolerance: float = 2.0) -> np.ndarray:
+    """``[V, N]`` bool: point ``n`` is seen by view ``v`` (z-buffer of the cloud itself, pixels about
+    two spacings wide at the cloud's median depth, a point visible within ``tolerance`` spacings of
+    its pixel's front-most point)."""
+    xyz = np.asarray(xyz, np.float64)
+    h, w = views.alpha.shape[1:]
+    out = np.zeros((views.num_views, len(xyz)), bool)
+    spacing = max(spacing, 1e-12)
+    for k in range(views.num_views):
+        u, v, depth = views.project(k, xyz)
+        front = depth > 1e-6
+        if not front.any():
+            continue
+        # z-buffer pixel: 2 spacings at the median depth (never finer than the image)
+        scale = min(1.0, float(np.median(depth[front])) / (2.0 * spacing * views.fx))
+        wz, hz = max(1, int(np.ceil(w * scale))), max(1, int(np.ceil(h * scale)))
+        iu = np.floor(u * scale).astype(np.int64)
+        iv = np.floor(v * scale).astype(np.int64)
+        ok = front & (iu >= 0) & (iu < wz) & (iv >= 0) & (iv < hz)
+        idx = np.flatnonzero(ok)
+        pix = iv[idx] * wz + iu[idx]
+        zbuf = np.full(wz * hz, np.inf)
+        np.minimum.at(zbuf, pix, depth[idx])
+        out[k, idx] = depth[idx] <= zbuf[pix] + tolerance * spacing
+    return out
+
+
 # ----------------------------------------------------------------------------------------------
 # Carving
 # ----------------------------------------------------------------------------------------------
@@ -225,6 +263,17 @@ class CarveConfig:
     """Bisection steps moving each point onto the hull surface (0: no snapping)."""
     seed: int = 0
     """Seed of the sub-sampling and jitter."""
+    photo_iters: int = 0
+    """Photo-consistency sweeps after silhouette carving (0: off; needs ``Views.rgb``). Each sweep
+    removes the shell voxels whose colours disagree across the views that see them."""
+    photo_tolerance: float = 0.1
+    """A view agrees with a voxel when its colour (straight RGB in [0, 1]) is within this of the
+    median colour over the voxel's visible views, in every channel."""
+    photo_agree: float = 0.6
+    """A voxel is photo-consistent when at least this fraction of its visible views agree (robust to
+    highlights seen in a few views)."""
+    photo_min_views: int = 3
+    """Voxels visible in fewer views are never removed by photo-consistency."""
 
 
 def _check_cfg(cfg: CarveConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -243,6 +292,11 @@ def _check_cfg(cfg: CarveConfig) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"cfg.min_views: expected an integer >= 1, found {cfg.min_views!r}")
     if not 0.0 <= cfg.jitter <= 1.0:
         raise ValueError(f"cfg.jitter: expected a fraction in [0, 1], found {cfg.jitter!r}")
+    if int(cfg.photo_iters) < 0 or not 0.0 < cfg.photo_agree <= 1.0 or not cfg.photo_tolerance > 0:
+        raise ValueError(
+            "cfg.photo_*: expected photo_iters >= 0, photo_agree in (0, 1], photo_tolerance > 0; found "
+            f"{cfg.photo_iters!r}, {cfg.photo_agree!r}, {cfg.photo_tolerance!r}"
+        )
     return lo, hi
 
 
@@ -305,6 +359,65 @@ def _outward(occupied: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.where(norm > 0, out / np.maximum(norm, 1e-12), 0.0)
 
 
+def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Remove photo-inconsistent shell voxels for ``cfg.photo_iters`` sweeps (or until none is).
+
+    Per sweep: the shell voxels' centres are z-buffered per view (:func:`visibility`, pixels about
+    two voxels wide, 1.5 voxels of depth tolerance); each visible view's colour is sampled
+    bilinearly (premultiplied by alpha, then divided by it, so the background does not bleed in) at
+    the voxel centre moved onto the silhouette hull along its outward direction where the hull
+    crosses within the voxel's reach (parallax between views would otherwise mix colours); a voxel seen by at least ``cfg.photo_min_views`` views is removed when fewer than
+    ``cfg.photo_agree`` of them lie within ``cfg.photo_tolerance`` of the median colour. Removing a
+    voxel exposes the one behind it to the next sweep, so concavities that silhouettes cannot see
+    (a cup's opening) are dug out sweep by sweep.
+
+    Args:
+        cfg: :class:`CarveConfig`.
+        views: :class:`Views` with ``rgb``.
+        occupied: ``[R, R, R]`` bool from :func:`carve_occupancy` (not modified).
+        size: ``[3]`` voxel size.
+
+    Returns:
+        ``(occupied [R, R, R] bool, info)`` with ``info`` the number removed per sweep.
+    """
+    if views.rgb is None:
+        raise ValueError("views.rgb: photo-consistency (cfg.photo_iters > 0) needs colours, found None")
+    lo = np.asarray(cfg.bounds[0], np.float64)
+    occupied = occupied.copy()
+    removed = []
+    for _ in range(int(cfg.photo_iters)):
+        shell = shell_voxels(occupied)
+        centres = lo + (shell + 0.5) * size
+        vis = visibility(views, centres, float(np.max(size)), tolerance=1.5)
+        # sample where the surface is: on the silhouette hull where the voxel touches it
+        at, _ = _snap(views, centres, _outward(occupied, shell) * size, cfg.alpha_threshold, 6)
+        colour = np.full((views.num_views, len(shell), 3), np.nan, np.float32)
+        for k in range(views.num_views):
+            sel = np.flatnonzero(vis[k])
+            if sel.size:
+                u, v, _ = views.project(k, at[sel])
+                a = views.alpha[k]
+                premultiplied = _bilinear(views.rgb[k] * a[..., None], u, v)
+                colour[k, sel] = premultiplied / np.maximum(_bilinear(a, u, v), 1e-6)[:, None]
+        count = vis.sum(0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: voxels nobody sees
+            median = np.nanmedian(colour, axis=0)
+        agree = (np.abs(colour - median) <= cfg.photo_tolerance).all(-1) & vis
+        frac = agree.sum(0) / np.maximum(count, 1)
+        bad = (count >= cfg.photo_min_views) & (frac < cfg.photo_agree)
+        removed.append(int(bad.sum()))
+        if not bad.any():
+            break
+        occupied[tuple(shell[bad].T)] = False
+        if not occupied.any():
+            raise CarvingError(
+                "photo-consistency removed every voxel: colours disagree across views everywhere "
+                f"(cfg.photo_tolerance={cfg.photo_tolerance} too small, or the cameras do not match the images)"
+            )
+    return occupied, {"photo_removed_per_sweep": removed}
+
+
 def carve_visual_hull(cfg: CarveConfig, views: Views) -> InitialCloud:
     """Carve, keep the shell, sample ``cfg.num_points`` points and snap them onto the hull.
 
@@ -322,6 +435,9 @@ def carve_visual_hull(cfg: CarveConfig, views: Views) -> InitialCloud:
     """
     t0 = time.perf_counter()
     occupied, _, size = carve_occupancy(cfg, views)
+    photo_info = {}
+    if cfg.photo_iters > 0:
+        occupied, photo_info = photo_consistency(cfg, views, occupied, size)
     lo = np.asarray(cfg.bounds[0], np.float64)
     r = occupied.shape[0]
     shell = shell_voxels(occupied)
@@ -349,6 +465,7 @@ def carve_visual_hull(cfg: CarveConfig, views: Views) -> InitialCloud:
         "shell_voxels": int(m),
         "snapped_fraction": float(snapped.mean()),
         "views": views.num_views,
+        **photo_info,
         "seconds": time.perf_counter() - t0,
     }
     return InitialCloud(xyz.astype(np.float32), None, "carving", info)

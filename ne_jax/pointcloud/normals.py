@@ -50,7 +50,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ne_jax.pointcloud.init import Views
+from ne_jax.pointcloud.init import Views, visibility
 
 ORIENTATIONS = ("visibility", "visibility_votes", "nearest_camera", "tangent_plane", "none")
 
@@ -133,33 +133,6 @@ def _open3d_normals(cfg: NormalConfig, xyz: np.ndarray, spacing: float):
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.radius_factor * spacing, max_nn=cfg.max_nn))
     return pcd
-
-
-def visibility(views: Views, xyz: np.ndarray, spacing: float, tolerance: float = 2.0) -> np.ndarray:
-    """``[V, N]`` bool: point ``n`` is seen by view ``v`` (z-buffer of the cloud itself, pixels about
-    two spacings wide at the cloud's median depth, a point visible within ``tolerance`` spacings of
-    its pixel's front-most point)."""
-    xyz = np.asarray(xyz, np.float64)
-    h, w = views.alpha.shape[1:]
-    out = np.zeros((views.num_views, len(xyz)), bool)
-    spacing = max(spacing, 1e-12)
-    for k in range(views.num_views):
-        u, v, depth = views.project(k, xyz)
-        front = depth > 1e-6
-        if not front.any():
-            continue
-        # z-buffer pixel: 2 spacings at the median depth (never finer than the image)
-        scale = min(1.0, float(np.median(depth[front])) / (2.0 * spacing * views.fx))
-        wz, hz = max(1, int(np.ceil(w * scale))), max(1, int(np.ceil(h * scale)))
-        iu = np.floor(u * scale).astype(np.int64)
-        iv = np.floor(v * scale).astype(np.int64)
-        ok = front & (iu >= 0) & (iu < wz) & (iv >= 0) & (iv < hz)
-        idx = np.flatnonzero(ok)
-        pix = iv[idx] * wz + iu[idx]
-        zbuf = np.full(wz * hz, np.inf)
-        np.minimum.at(zbuf, pix, depth[idx])
-        out[k, idx] = depth[idx] <= zbuf[pix] + tolerance * spacing
-    return out
 
 
 def _visibility_votes(views: Views, xyz, normals, spacing, tolerance) -> np.ndarray:

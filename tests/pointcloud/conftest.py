@@ -36,6 +36,26 @@ def sphere_alpha(c2w: np.ndarray, size: int, focal: float, radius: float, ss: in
     return hit.reshape(size, size, ss * ss).mean(-1).astype(np.float32)
 
 
+def sphere_rgba(c2w: np.ndarray, size: int, focal: float, radius: float, ss: int = 2) -> np.ndarray:
+    """``[size, size, 4]`` straight RGBA of the sphere with the colour ``0.5 + 0.4 sin(6 p)`` of
+    each surface point ``p`` (view-independent, so photo-consistent), black background."""
+    off = (np.arange(ss) + 0.5) / ss
+    j, i, sj, si = np.meshgrid(np.arange(size), np.arange(size), off, off, indexing="ij")
+    d = np.stack([(i + si - size / 2) / focal, -(j + sj - size / 2) / focal, -np.ones_like(i, float)], -1)
+    d = d.reshape(-1, 3) @ c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = c2w[:3, 3]
+    b = d @ o
+    disc = b**2 - (o @ o - radius**2)
+    hit = disc > 0
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    colour = 0.5 + 0.4 * np.sin(6.0 * (o + t[:, None] * d)) * hit[:, None]
+    hit = hit.reshape(size, size, ss * ss)
+    colour = colour.reshape(size, size, ss * ss, 3)
+    rgb = (colour * hit[..., None]).sum(2) / np.maximum(hit.sum(-1), 1)[..., None]
+    return np.concatenate([rgb, hit.mean(-1)[..., None]], -1).astype(np.float32)
+
+
 def sphere_views(n_views: int = 40, size: int = 96, radius: float = RADIUS, distance: float = 4.0) -> Views:
     """``n_views`` cameras on a Fibonacci sphere of ``distance`` looking at the origin, with the
     sphere's analytic masks (field of view about 40 degrees)."""

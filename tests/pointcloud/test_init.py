@@ -18,6 +18,7 @@ from ne_jax.pointcloud.init import (
     ground_truth_cloud,
     hull_test,
     load_ply_cloud,
+    photo_consistency,
     shell_voxels,
 )
 from ne_jax.pointcloud.metrics import chamfer
@@ -231,3 +232,49 @@ def test_ground_truth_cloud_is_labelled(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(cloud.normals, axis=1), 1.0, atol=1e-6)
     with pytest.raises(PlyError, match=r"ground-truth surface samples not found: .*points\.ply"):
         ground_truth_cloud(tmp_path / "elsewhere")
+
+
+# --------------------------------------------------------------------------- photo-consistency
+
+
+@pytest.fixture(scope="module")
+def textured_sphere():
+    """24 views of a sphere textured by position (64 x 64), as Views with colours."""
+    from ne_jax.data.synthetic import look_at
+
+    from .conftest import sphere_rgba
+
+    size = 64
+    focal = 0.5 * size / np.tan(0.5 * 0.6911112070083618)
+    c2w = np.stack([look_at(e) for e in fibonacci_sphere(24, 4.0)])
+    rgba = np.stack([sphere_rgba(c, size, focal, RADIUS) for c in c2w])
+    return Views.create(rgba[..., 3], c2w, focal, focal, size / 2, size / 2, rgb=rgba[..., :3])
+
+
+PHOTO = dataclasses.replace(CFG, resolution=32, num_points=2000, photo_iters=3, photo_tolerance=0.1)
+
+
+def test_photo_consistent_surface_is_kept(textured_sphere):
+    occupied, _, size = carve_occupancy(PHOTO, textured_sphere)
+    shell = len(shell_voxels(occupied))
+    kept, info = photo_consistency(PHOTO, textured_sphere, occupied, size)
+    # a view-independent texture: (almost) every shell voxel agrees across its views
+    assert info["photo_removed_per_sweep"][0] < 0.02 * shell  # measured: 2 of 904
+    assert kept.sum() > 0.98 * occupied.sum()
+
+
+def test_view_dependent_colours_are_carved(textured_sphere):
+    # the same masks, but each view paints the object its own random colour: nothing is consistent
+    rng = np.random.default_rng(0)
+    rgb = np.broadcast_to(rng.random((textured_sphere.num_views, 1, 1, 3)), textured_sphere.rgb.shape)
+    views = dataclasses.replace(textured_sphere, rgb=np.ascontiguousarray(rgb, np.float32))
+    occupied, _, size = carve_occupancy(PHOTO, views)
+    shell = len(shell_voxels(occupied))
+    kept, info = photo_consistency(PHOTO, views, occupied, size)
+    assert info["photo_removed_per_sweep"][0] > 0.5 * shell
+    assert kept.sum() < occupied.sum()
+
+
+def test_photo_consistency_needs_colours(sphere):
+    with pytest.raises(ValueError, match="views.rgb: photo-consistency"):
+        carve_visual_hull(dataclasses.replace(CFG, photo_iters=1), sphere)
