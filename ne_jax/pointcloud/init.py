@@ -36,9 +36,9 @@ lie slightly closer to the true surface: on the tiny benchmark (``experiments/in
 snapping lowered the symmetric Chamfer distance on stool and glossy and raised it on cup and blocks,
 mean over the four scenes 0.0287 snapped vs 0.0281 unsnapped (world units, 128^3 voxels of 0.017).
 
-Time (2 CPU cores shared with other jobs, so noisy): a 128^3 grid carved by 100 views of 200 x 200
-took 13-21 s, snapping 100,000 points 8 s more; the tiny benchmark (24 views of 64 x 64, 128^3,
-20,000 points) 0.6-6 s per scene.
+Time (2 CPU cores, shared with other jobs, so noisy): a 128^3 grid carved by 100 views of
+200 x 200 with 100,000 snapped points took 3.6-5.2 s on a quiet machine and up to ~30 s under
+load; the tiny benchmark (24 views of 64 x 64, 128^3, 20,000 points) 0.6-6 s per scene.
 
 Shapes: ``V`` views, ``H x W`` images, ``N`` points.
 """
