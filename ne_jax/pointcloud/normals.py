@@ -35,6 +35,8 @@ ground-truth samples' positions: ``visibility`` 0.95 / 0.87, ``tangent_plane`` 0
 ``visibility_votes`` 0.87 / 0.80, ``nearest_camera`` 0.76 / 0.65, ``none`` 0.47 / 0.50. ``visibility``
 is the default. ``tangent_plane`` is excellent on one closed hull but
 takes a single global sign, which flips whole parts of multi-part clouds; it is also 5-20x slower.
+Time: 100,000 points, 100 views of 200 x 200, ``"visibility"``: 1.8 s on a quiet 2-core machine
+(6.3 s under load).
 
 Degenerate input: an empty cloud gives ``[0, 3]``; a cloud with fewer than 3 distinct points, or
 whose points are collinear, gets unit normals perpendicular to its line (any perpendicular for a
