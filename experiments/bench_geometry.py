@@ -109,12 +109,16 @@ def run_size(n: int, quick: bool) -> dict:
     cfg = KDTreeConfig(frontier_capacity=64, max_segments=32)
 
     # --- build ---------------------------------------------------------------------------------
-    phases = {}
-    t = time.perf_counter()
-    tree = build_tree(xyz, alive, cfg, timings=phases)
-    jax.block_until_ready(tree)
-    out["build_s"] = time.perf_counter() - t
-    out["build_phases_s"] = phases
+    # Best of 2 builds (the baselines below are best of 2-3 too: the shared CPU is noisy).
+    out["build_s"] = math.inf
+    for _ in range(2):
+        phases = {}
+        t = time.perf_counter()
+        tree = build_tree(xyz, alive, cfg, timings=phases)
+        jax.block_until_ready(tree)
+        if time.perf_counter() - t < out["build_s"]:
+            out["build_s"] = time.perf_counter() - t
+            out["build_phases_s"] = phases
     out["depth"] = tree.depth
     out["tree_bytes"] = int(sum(a.nbytes for a in jax.tree_util.tree_leaves(tree)))
     out["ckdtree_build_s"] = timeit(lambda: cKDTree(xyz), 3 if n <= 10**6 else 2)

@@ -19,16 +19,24 @@ and its special case for cells reaching far past the points are left out: the fi
 planar cloud flat and unhittable). Boxes of one level are therefore disjoint up to shared faces,
 and each box contains its children's.
 
-Built on the host (numpy + ``scipy.spatial.cKDTree``), not under ``jit``. Measured on the 2-core
-CPU (``experiments/bench_geometry.py``, field ``jit_vs_host``, 2^20 surface points): numpy's split
-pass over all 20 levels took 2.8 s (0.14 s a level), while a single level's XLA ``argsort`` under
-jit took 0.18-0.19 s — a jitted build would be slower before even starting on the candidate sets,
-which need a 96-NN query per node, where scipy's C++ tree is 10-35x faster than the JAX KNN
-structures measured for DESIGN.md. Building is rare (after edits and point-cloud optimisation);
-everything the tree feeds (``intersect``, ``knn_interpolate``) is jit-compiled.
+Built on the host (numpy + ``scipy.spatial.cKDTree``), not under ``jit``: a single level's XLA
+``argsort`` under jit (2^20 points, 0.18-0.19 s) costs more than numpy's split of that level
+(``experiments/bench_geometry.py``, field ``jit_vs_host``), and the candidate sets need k-NN queries,
+where scipy's C++ tree is 10-35x faster than the JAX KNN structures measured for DESIGN.md. Building
+is rare (after edits and point-cloud optimisation); everything the tree feeds (``intersect``,
+``knn_interpolate``) is jit-compiled.
 
-Cost: the candidate sets dominate (2M points: ~2M queries of 96 neighbours, about 2/3 of the build);
-the structure alone (statistics, splits, boxes) is ~10x a bare ``cKDTree`` build.
+Cost, by phase (``build_tree(..., timings=)``): ``splits`` — one ``argpartition`` per level on
+rows padded to a common width (see ``_split_levels``); ``index`` — ``cKDTree`` on the points in slot
+order + spacing statistics; ``boxes``; ``candidates`` — ~``P`` sets of 96, built by a cascade of
+certified supersets (see ``_candidate_sets``) instead of one scipy query per node, on a thread
+pool. Same-process comparison with the previous build (one scipy query per node, padded-row
+partitions with four ``kth``), surface points on the shared 2-core CPU at a quiet moment: 1M points
+4.7 s (was 9.4 s; cKDTree 0.34 s), of which splits 1.05 s (was 2.4), candidates 2.5 s (was 6.3);
+2M points 7.7 s (was 20.1 s; cKDTree 0.72 s), splits 1.6 s (was 5.2), candidates 4.9 s (was 12.9):
+~11-14x a bare ``cKDTree`` build, down from 25-45x (``bench_geometry.json`` has noisier runs).
+Candidate sets still dominate; what remains is numpy's per-element cost in the cascade (distances,
+uint64 key sort, gathers) and scipy's wide queries at the growing level.
 """
 
 from __future__ import annotations
@@ -186,7 +194,8 @@ class KDTree:
         split_value: ``[P-1]`` split coordinate (midpoint between the two children's points).
         perm: ``[P]`` int32 point index (into the ``PointState``) per slot, sentinel ``capacity``.
         candidates: ``[nodes of the candidate levels, num_candidates]`` int32 point indices nearest
-            the box centre, nearest first, sentinel ``capacity``; row ``g - first_candidate_node``.
+            the box centre, nearest first (equidistant points in any order), sentinel ``capacity``;
+            row ``g - first_candidate_node``.
         spacing: ``[]`` mean nearest-neighbour distance of the alive points (the length unit).
         depth, capacity, num_render_levels: static ints.
     """
