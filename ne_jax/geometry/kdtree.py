@@ -530,7 +530,6 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     x = pts[idx].astype(np.float64)
     n = idx.size
     depth = tree_depth(n, cfg)
-    p = 2**depth
 
     axes, values, leaf, (bb_lo, bb_hi, count) = _split_levels(x, depth)
     lap("splits")
