@@ -1,5 +1,12 @@
-"""Training: ray batches, losses, the train state and the jitted step (issue 5, part 3)."""
+"""Training: ray batches, losses, the train state, the jitted step and checkpoints."""
 
+from ne_jax.train.checkpoint import (
+    CheckpointError,
+    CheckpointNotFoundError,
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
 from ne_jax.train.losses import (
     TERMS,
     LossConfig,
@@ -18,6 +25,11 @@ from ne_jax.train.step import make_train_step
 
 __all__ = [
     "TERMS",
+    "CheckpointError",
+    "CheckpointNotFoundError",
+    "latest_checkpoint",
+    "load_checkpoint",
+    "save_checkpoint",
     "Batch",
     "LossConfig",
     "RayPool",
