@@ -19,18 +19,23 @@ from ne_jax.train.losses import (
     sparsity_loss,
     total_loss,
 )
-from ne_jax.train.sampler import Batch, RayPool, SamplerConfig, band_mask, build_pool, pixel_index_rays, sample_batch
+from ne_jax.train.sampler import (
+    Batch,
+    RayPool,
+    SamplerConfig,
+    band_mask,
+    build_pool,
+    pixel_index_rays,
+    sample_batch,
+)
 from ne_jax.train.state import TrainConfig, TrainState, init_train_state
 from ne_jax.train.step import make_train_step
 
 __all__ = [
     "TERMS",
+    "Batch",
     "CheckpointError",
     "CheckpointNotFoundError",
-    "latest_checkpoint",
-    "load_checkpoint",
-    "save_checkpoint",
-    "Batch",
     "LossConfig",
     "RayPool",
     "SamplerConfig",
@@ -40,6 +45,8 @@ __all__ = [
     "build_pool",
     "confidence_loss",
     "init_train_state",
+    "latest_checkpoint",
+    "load_checkpoint",
     "loss_terms",
     "make_train_step",
     "normal_loss",
@@ -48,6 +55,7 @@ __all__ = [
     "photometric_loss",
     "pixel_index_rays",
     "sample_batch",
+    "save_checkpoint",
     "sparsity_loss",
     "total_loss",
 ]
