@@ -33,7 +33,7 @@ from jax import lax
 
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig
 from ne_jax.geometry.points import PointState
-from ne_jax.numerics import safe_log, safe_norm
+from ne_jax.numerics import safe_log, safe_norm, safe_sqrt
 
 
 @struct.dataclass
@@ -73,11 +73,6 @@ def _split_xyz(state: PointState):
     return state.xyz[:, 0], state.xyz[:, 1], state.xyz[:, 2]
 
 
-def _safe_sqrt(x):
-    ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
-
-
 def _candidate_search(state: PointState, tree: KDTree, points, node, k: int, eps):
     """``points`` ``[B, S, 3]`` share ``node`` ``[B]``. Returns ``(Neighbors [B, S, K], ci, j)``:
     ``ci`` ``[B, Kc]`` the candidate indices (0 where empty), ``j`` ``[B, S, K]`` the chosen
@@ -98,7 +93,7 @@ def _candidate_search(state: PointState, tree: KDTree, points, node, k: int, eps
     b = jnp.arange(ci.shape[0])[:, None, None]
     s = jnp.arange(points.shape[1])[None, :, None]
     valid = ok[b, j]
-    dist = _safe_sqrt(d2[b, s, j])
+    dist = safe_sqrt(d2[b, s, j])
     weight = knn_weights(state.conf_logit[ci][b, j], dist, valid, eps)
     return Neighbors(index=ci[b, j], weight=weight, dist=dist, valid=valid), ci, j
 
