@@ -74,16 +74,18 @@ class Camera:
         )
 
 
-def pixel_rays(camera: Camera, pixels: jax.Array, near: float, far: float) -> Rays:
-    """Rays through image positions ``pixels`` ``[R, 2]`` given as ``(x, y)`` in pixel units
-    (pixel centres are at ``i + 0.5``). Returns unit directions in world space."""
-    pixels = jnp.asarray(pixels, camera.c2w.dtype)
-    x = (pixels[:, 0] - camera.cx) / camera.fx
-    y = -(pixels[:, 1] - camera.cy) / camera.fy
+def rays_through_pixels(c2w, fx, fy, cx, cy, pixels: jax.Array, near: float, far: float) -> Rays:
+    """Rays through image positions ``pixels`` ``[R, 2]`` given as ``(x, y)`` in pixel units (pixel
+    centres at ``i + 0.5``) of pinhole cameras ``c2w`` ``[4, 4]`` (one camera) or ``[R, 4, 4]`` (one
+    per ray) with intrinsics ``fx, fy, cx, cy`` (scalars). Unit directions in world space."""
+    c2w = jnp.asarray(c2w)
+    pixels = jnp.asarray(pixels, c2w.dtype)
+    x = (pixels[:, 0] - cx) / fx
+    y = -(pixels[:, 1] - cy) / fy
     d_cam = jnp.stack([x, y, -jnp.ones_like(x)], axis=-1)
-    d_world = d_cam @ camera.c2w[:3, :3].T
+    d_world = jnp.einsum("...ij,...j->...i", c2w[..., :3, :3], d_cam)
     direction = d_world / jnp.linalg.norm(d_world, axis=-1, keepdims=True)
-    origin = jnp.broadcast_to(camera.c2w[:3, 3], direction.shape)
+    origin = jnp.broadcast_to(c2w[..., :3, 3], direction.shape)
     r = direction.shape[0]
     return Rays(
         origin=origin,
@@ -91,6 +93,12 @@ def pixel_rays(camera: Camera, pixels: jax.Array, near: float, far: float) -> Ra
         near=jnp.full((r,), near, direction.dtype),
         far=jnp.full((r,), far, direction.dtype),
     )
+
+
+def pixel_rays(camera: Camera, pixels: jax.Array, near: float, far: float) -> Rays:
+    """Rays of ``camera`` through image positions ``pixels`` ``[R, 2]`` (see
+    :func:`rays_through_pixels`)."""
+    return rays_through_pixels(camera.c2w, camera.fx, camera.fy, camera.cx, camera.cy, pixels, near, far)
 
 
 def pixel_centres(width: int, height: int) -> np.ndarray:

@@ -29,7 +29,7 @@ from flax import struct
 from scipy import ndimage
 
 from ne_jax.data.nerf_synthetic import SceneSplit, composite, parse_background
-from ne_jax.data.rays import Rays
+from ne_jax.data.rays import Rays, rays_through_pixels
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,20 +155,11 @@ class Batch:
 
 def pixel_index_rays(pool: RayPool, pixel: jax.Array, near: float, far: float) -> Rays:
     """Rays through flat pixel indices ``pixel`` ``[B]`` (pixel centres), unit directions."""
-    hw = pool.width * pool.height
-    view = pixel // hw
-    rest = pixel % hw
-    row, col = rest // pool.width, rest % pool.width
-    fx, fy, cx, cy = pool.intrinsics[0], pool.intrinsics[1], pool.intrinsics[2], pool.intrinsics[3]
-    x = (col.astype(jnp.float32) + 0.5 - cx) / fx
-    y = -(row.astype(jnp.float32) + 0.5 - cy) / fy
-    d_cam = jnp.stack([x, y, -jnp.ones_like(x)], axis=-1)
-    c2w = pool.c2w[view]  # [B, 4, 4]
-    d = jnp.einsum("bij,bj->bi", c2w[:, :3, :3], d_cam)
-    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    b = pixel.shape[0]
-    return Rays(origin=c2w[:, :3, 3], direction=d, near=jnp.full((b,), near, jnp.float32),
-                far=jnp.full((b,), far, jnp.float32))
+    view, rest = jnp.divmod(pixel, pool.width * pool.height)
+    row, col = jnp.divmod(rest, pool.width)
+    xy = jnp.stack([col, row], axis=-1).astype(pool.c2w.dtype) + 0.5
+    fx, fy, cx, cy = (pool.intrinsics[i] for i in range(4))
+    return rays_through_pixels(pool.c2w[view], fx, fy, cx, cy, xy, near, far)
 
 
 @functools.partial(jax.jit, static_argnums=0)
