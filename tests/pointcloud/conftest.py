@@ -21,15 +21,20 @@ def fibonacci_sphere(n: int, radius: float = 1.0) -> np.ndarray:
     return radius * np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
 
 
-def sphere_alpha(c2w: np.ndarray, size: int, focal: float, radius: float, ss: int = 4) -> np.ndarray:
-    """``[size, size]`` analytic alpha of a sphere at the origin seen by ``c2w`` (OpenGL), pixel
-    centres at ``i + 0.5``, ``ss x ss`` samples per pixel."""
+def _subpixel_rays(c2w: np.ndarray, size: int, focal: float, ss: int) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centre ``[3]`` and unit directions ``[size * size * ss * ss, 3]`` through an ``ss x ss``
+    sub-pixel grid of every pixel (row-major, samples of a pixel contiguous)."""
     off = (np.arange(ss) + 0.5) / ss
     j, i, sj, si = np.meshgrid(np.arange(size), np.arange(size), off, off, indexing="ij")
     d = np.stack([(i + si - size / 2) / focal, -(j + sj - size / 2) / focal, -np.ones_like(i, float)], -1)
     d = d.reshape(-1, 3) @ c2w[:3, :3].T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = c2w[:3, 3]
+    return c2w[:3, 3], d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def sphere_alpha(c2w: np.ndarray, size: int, focal: float, radius: float, ss: int = 4) -> np.ndarray:
+    """``[size, size]`` analytic alpha of a sphere at the origin seen by ``c2w`` (OpenGL), pixel
+    centres at ``i + 0.5``, ``ss x ss`` samples per pixel."""
+    o, d = _subpixel_rays(c2w, size, focal, ss)
     t = -(d @ o)  # closest approach along each ray
     miss = np.linalg.norm(o + t[:, None] * d, axis=1)
     hit = (miss < radius) & (t > 0)
@@ -39,12 +44,7 @@ def sphere_alpha(c2w: np.ndarray, size: int, focal: float, radius: float, ss: in
 def sphere_rgba(c2w: np.ndarray, size: int, focal: float, radius: float, ss: int = 2) -> np.ndarray:
     """``[size, size, 4]`` straight RGBA of the sphere with the colour ``0.5 + 0.4 sin(6 p)`` of
     each surface point ``p`` (view-independent, so photo-consistent), black background."""
-    off = (np.arange(ss) + 0.5) / ss
-    j, i, sj, si = np.meshgrid(np.arange(size), np.arange(size), off, off, indexing="ij")
-    d = np.stack([(i + si - size / 2) / focal, -(j + sj - size / 2) / focal, -np.ones_like(i, float)], -1)
-    d = d.reshape(-1, 3) @ c2w[:3, :3].T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = c2w[:3, 3]
+    o, d = _subpixel_rays(c2w, size, focal, ss)
     b = d @ o
     disc = b**2 - (o @ o - radius**2)
     hit = disc > 0
