@@ -290,7 +290,7 @@ def grown_config(cfg: RenderConfig, out: RenderOut) -> RenderConfig | None:
     """Host side: the config with larger capacities if ``out`` lost segments, else ``None``.
     The packing budget grows on ``dropped`` to what the batch needed; the traversal capacities double
     on ``overflow`` (as in :func:`~ne_jax.geometry.intersect.intersect_checked`)."""
-    dropped, overflow = int(jnp.max(out.dropped)), int(jnp.max(out.overflow))
+    dropped, overflow = (int(v) for v in jax.device_get(jnp.stack([jnp.max(out.dropped), jnp.max(out.overflow)])))
     if dropped == 0 and overflow == 0:
         return None
     if dropped > 0:  # enough for what this batch needed, in powers of two (few distinct compiles)
