@@ -16,18 +16,32 @@ def tiny(dtype) -> float:
 
 
 def safe_norm(x: jax.Array, axis: int = -1, keepdims: bool = False) -> jax.Array:
-    """Euclidean norm along ``axis``; value 0 and gradient 0 (not NaN) at the zero vector."""
-    sq = jnp.sum(x * x, axis=axis, keepdims=True)
-    is_zero = sq <= tiny(x.dtype)
-    norm = jnp.where(is_zero, 0.0, jnp.sqrt(jnp.where(is_zero, 1.0, sq)))
+    """Euclidean norm along ``axis``; value 0 and gradient 0 (not NaN) at the zero vector.
+
+    Computed as ``s * sqrt(sum((x / s)^2))`` with ``s = max|x_i|`` (held constant for the gradient,
+    which is then exactly ``x / |x|``), so the squares neither overflow nor underflow: float32
+    vectors longer than ~1.8e19 or shorter than ~1e-19 get their true norm (a plain ``sum(x^2)``
+    gives ``inf`` or flushes to 0 there). Infinite components give ``inf``, NaN propagates."""
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=axis, keepdims=True))
+    ok = (scale > 0) & (scale < jnp.inf)
+    s = jnp.where(ok, scale, 1.0)
+    xs = x / s
+    sq = jnp.sum(xs * xs, axis=axis, keepdims=True)
+    norm = jnp.where(ok, s * jnp.sqrt(jnp.where(ok, sq, 1.0)), jnp.where(scale == 0, 0.0, scale))
     return norm if keepdims else jnp.squeeze(norm, axis=axis)
 
 
 def safe_normalize(x: jax.Array, axis: int = -1, fallback: jax.Array | None = None) -> jax.Array:
-    """``x / |x|`` along ``axis``; the zero vector maps to ``fallback`` (default: zeros), finite grad."""
-    norm = safe_norm(x, axis=axis, keepdims=True)
-    is_zero = norm <= 0.0
-    unit = x / jnp.where(is_zero, 1.0, norm)
+    """``x / |x|`` along ``axis``; the zero vector maps to ``fallback`` (default: zeros), finite grad.
+
+    Computed as ``(x / s) / |x / s|`` with ``s = max|x_i|`` held constant for the gradient (exact:
+    the result does not depend on ``s``), so neither the value nor the Jacobian ``(I - u u^T) / |x|``
+    overflows or underflows in between: it is finite wherever ``1 / |x|`` is representable."""
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=axis, keepdims=True))
+    is_zero = scale == 0
+    xs = x / jnp.where(is_zero | (scale == jnp.inf), 1.0, scale)
+    sq = jnp.sum(xs * xs, axis=axis, keepdims=True)
+    unit = xs / jnp.sqrt(jnp.where(is_zero, 1.0, sq))
     if fallback is None:
         fallback = jnp.zeros_like(x)
     return jnp.where(is_zero, jnp.broadcast_to(fallback, x.shape), unit)
