@@ -17,6 +17,8 @@ float32 on every backend (no TF32 convolutions on GPU) and cheap at 11 taps.
 
 from __future__ import annotations
 
+import functools
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -82,7 +84,7 @@ def ssim(pred, target, max_val: float = 1.0) -> jnp.ndarray:
     taps = gaussian_window()
     c1 = (SSIM_K1 * max_val) ** 2
     c2 = (SSIM_K2 * max_val) ** 2
-    filt = lambda a: _filter_valid(a, taps)  # noqa: E731
+    filt = functools.partial(_filter_valid, taps=taps)
     shift_x = jnp.mean(pred, axis=(-3, -2), keepdims=True)
     shift_y = jnp.mean(target, axis=(-3, -2), keepdims=True)
     x, y = pred - shift_x, target - shift_y

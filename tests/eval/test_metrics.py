@@ -10,7 +10,10 @@ from skimage.metrics import structural_similarity
 
 from ne_jax.eval.metrics import MSE_FLOOR, gaussian_window, psnr, ssim
 
-SKIMAGE = dict(channel_axis=-1, data_range=1.0, gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+_psnr_grad = jax.jit(jax.grad(psnr))  # one compilation per shape for all gradient cases
+_ssim_grad = jax.jit(jax.grad(ssim))
+SKIMAGE = {"channel_axis": -1, "data_range": 1.0, "gaussian_weights": True, "sigma": 1.5,
+           "use_sample_covariance": False}
 
 
 def _random_pair(shape, noise, seed=0):
@@ -70,7 +73,7 @@ def test_psnr_identical_images_are_finite_and_batched():
 def test_psnr_gradient_finite():
     a, b = _random_pair((8, 8, 3), 0.1)
     for target in (b, a):  # different, identical (the floored MSE)
-        g = jax.grad(lambda p: psnr(p, target))(jnp.asarray(a, jnp.float32))
+        g = _psnr_grad(jnp.asarray(a, jnp.float32), target)
         assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -109,7 +112,7 @@ def test_ssim_gradient_finite(case):
     a, b = _random_pair((16, 16, 3), 0.1)
     c = np.full((16, 16, 3), 0.5)
     pred, target = {"different": (a, b), "identical": (a, a), "constant": (c, c), "constant_vs_random": (c, a)}[case]
-    g = np.asarray(jax.grad(lambda p: ssim(p, target))(jnp.asarray(pred, jnp.float32)))
+    g = np.asarray(_ssim_grad(jnp.asarray(pred, jnp.float32), jnp.asarray(target, jnp.float32)))
     assert np.all(np.isfinite(g))
     if case in ("identical", "constant"):  # a maximum: the gradient vanishes
         np.testing.assert_allclose(g, 0.0, atol=1e-5)
