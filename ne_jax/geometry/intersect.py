@@ -98,7 +98,7 @@ def _compact(mask, values, capacity):
     pos = jnp.cumsum(mask.astype(jnp.int32)) - 1
     target = jnp.where(mask & (pos < capacity), pos, capacity)
     out = tuple(jnp.zeros((capacity + 1,), v.dtype).at[target].set(v)[:capacity] for v in values)
-    total = jnp.sum(mask.astype(jnp.int32))
+    total = jnp.sum(mask, dtype=jnp.int32)  # int32 under x64 too (scan carry)
     kept = jnp.arange(capacity) < total
     return out, kept, total
 
@@ -134,7 +134,7 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
         target = jnp.where(mask & (pos < m_cap), pos, m_cap)
         lev = jnp.full(node.shape, level, jnp.int32)
         out = tuple(o.at[target].set(v) for o, v in zip(out, (t_lo, t_hi, node, lev)))
-        return out, n_out + jnp.sum(mask.astype(jnp.int32))
+        return out, n_out + jnp.sum(mask, dtype=jnp.int32)
 
     def step(carry, level):
         (node, t_lo, t_hi, live), out, n_out, f_over = carry
