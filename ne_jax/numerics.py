@@ -69,7 +69,9 @@ def safe_div(num: jax.Array, den: jax.Array, fallback: float = 0.0) -> jax.Array
 def safe_reciprocal(x: jax.Array, fallback: float = 0.0) -> jax.Array:
     """``1 / x`` where ``|x|`` is at least the dtype's smallest normal (so the result is finite),
     ``fallback`` elsewhere — including ``0.0``, ``-0.0`` and denormals, whose reciprocal would be
-    ``inf``. Finite gradient everywhere (``-1/x^2`` on the safe side, 0 on the fallback side).
+    ``inf``. Gradient ``-1/x^2`` on the safe side, 0 on the fallback side; it overflows to ``-inf``
+    for ``|x| < sqrt(tiny)`` (float32 ~1.1e-19), so callers that differentiate through it must treat
+    those inputs as the fallback case themselves (``intersect`` does).
 
     Ray-box slab tests use this for ray directions: a component that gets the fallback is treated as
     exactly parallel to the slab by the caller, never multiplied through as ``0 * inf = nan``."""

@@ -11,8 +11,11 @@ disjoint and a child's box lies in its parent's, so the segments of a ray never 
 shared faces, where a ray lying exactly in the face plane sees both neighbours).
 
 Hit rule (exact, no epsilon in the slab test itself): per axis, a direction component that is
-``0.0`` or ``-0.0`` (or smaller than the dtype's smallest normal) makes the ray parallel to that slab:
-inside iff ``lo <= origin <= hi`` (closed). Otherwise the slab is ``[(lo-o)/d, (hi-o)/d]`` (ordered).
+``0.0`` or ``-0.0`` (or smaller in magnitude than ``sqrt(tiny)`` of the dtype: float32 ~1.1e-19,
+float64 ~1.5e-154, below which the derivative ``-1/d^2`` of the slab distances overflows) makes the
+ray parallel to that slab: inside iff ``lo <= origin <= hi`` (closed). Such a component moves the
+ray by less than ``1e-19 * far`` across the slab, so only an origin within that distance of a face
+can decide differently from the exact test. Otherwise the slab is ``[(lo-o)/d, (hi-o)/d]`` (ordered).
 The ray hits the box iff the clipped interval ``[max(enter, near), min(exit, far)]`` is longer than
 ``cfg.min_hit_factor * tree.spacing`` (released code: ``unit_len / 16``). Rays through an edge or a
 corner, grazing a box, or tangent to a curved cluster are then deterministic misses; a ray lying in a
@@ -76,7 +79,8 @@ class Segments:
 def slab_intersect(lo, hi, origin, inv_dir, parallel, near, far, min_len):
     """Ray-box test; all arguments broadcast (boxes ``[..., 3]``, ray quantities ``[3]`` / ``[]``).
 
-    ``inv_dir = safe_reciprocal(direction)``, ``parallel = |direction| < tiny``. Returns
+    ``parallel = |direction| < sqrt(tiny)``, ``inv_dir = safe_reciprocal(direction)`` (0 where parallel:
+    see :func:`_parallel_and_inverse`). Returns
     ``(t_lo, t_hi, hit)`` with ``t_lo = max(enter, near)``, ``t_hi = min(exit, far)`` and
     ``hit = t_lo + min_len < t_hi``. Never NaN; gradients finite (see the module docstring)."""
     t1 = (lo - origin) * inv_dir
@@ -90,6 +94,17 @@ def slab_intersect(lo, hi, origin, inv_dir, parallel, near, far, min_len):
     t_lo = jnp.maximum(enter, near)
     t_hi = jnp.minimum(exit_, far)
     return t_lo, t_hi, t_lo + min_len < t_hi
+
+
+def _parallel_and_inverse(direction):
+    """``(parallel, inv_dir)`` for the slab test. Components below ``sqrt(tiny)`` in magnitude are
+    parallel and get ``inv_dir = 0`` with a zero gradient (double ``where``): ``safe_reciprocal``'s
+    derivative ``-1/d^2`` overflows to ``inf`` there, and the zero cotangent of a slab bound that is
+    not the active one turned it into NaN (``0 * inf``) in the gradient of any ray with such a
+    component (bug found by ``tests/hard_cases/test_traversal.py``)."""
+    par = jnp.abs(direction) < jnp.sqrt(tiny(direction.dtype))
+    inv = jnp.where(par, 0.0, safe_reciprocal(jnp.where(par, 1.0, direction)))
+    return par, inv
 
 
 def _compact(mask, values, capacity):
@@ -107,8 +122,7 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
     dtype = origin.dtype
     depth = tree.depth
     f_cap, m_cap = cfg.frontier_capacity, cfg.max_segments
-    inv = safe_reciprocal(direction)
-    par = jnp.abs(direction) < tiny(dtype)
+    par, inv = _parallel_and_inverse(direction)
     min_len = (cfg.min_hit_factor * tree.spacing).astype(dtype)
     test = functools.partial(slab_intersect, origin=origin, inv_dir=inv, parallel=par, near=near, far=far, min_len=min_len)
 
