@@ -1,9 +1,13 @@
 """The ``ne-jax`` command line: thin wrappers over library functions.
 
 Sub-commands:
-  demo            the main job on the built-in default scene set (tiny preset): generate the
-                  procedural benchmark, write its images and a contact sheet
+  demo            the main job on the built-in default scene: make the tiny procedural benchmark,
+                  train one scene, evaluate its test views and render an orbit video
   make-benchmark  generate the procedural editing benchmark for a preset
+  train           train a model of a scene folder (NeRF Synthetic layout) into a run directory
+  eval            PSNR and SSIM of a trained run on a split (per view and mean), with the images
+  render          render a trained run's split views to PNGs, or a camera orbit to MP4/GIF
+  export          write a trained run's point cloud (normals, confidences, colours) to PLY
 """
 
 from __future__ import annotations
@@ -12,6 +16,8 @@ import argparse
 import sys
 import time
 from pathlib import Path
+
+SCENE_SPLITS = ("train", "val", "test")
 
 
 def _cmd_make_benchmark(args) -> int:
@@ -26,21 +32,150 @@ def _cmd_make_benchmark(args) -> int:
     return 0
 
 
+def _run_config(args):
+    """The preset with the command line's changes applied."""
+    from ne_jax.train.loop import InitConfig, get_run_preset
+
+    run = get_run_preset(args.preset)
+    if args.epochs is not None or args.steps_per_epoch is not None:
+        run = run.with_schedule(args.epochs, args.steps_per_epoch)
+    if args.batch_size is not None:
+        run = run.replace(sampler=run.sampler.replace(batch_size=args.batch_size))
+    if args.init != run.init.source or args.ply is not None:
+        if args.ply is not None and args.init != "ply":
+            raise ValueError(f"--ply: given with --init {args.init!r}; use --init ply")
+        run = run.replace(init=InitConfig(source=args.init, ply_path=args.ply, carve=run.init.carve,
+                                          capacity_headroom=run.init.capacity_headroom))
+    return run.replace(background=args.background, seed=args.seed)
+
+
+def _evaluate(run, params, scene, scene_dir: Path, split_name: str, out: Path, background, progress=True) -> dict:
+    """Render and score a split; write ``out/metrics.json`` and ``out/images/*.png``."""
+    from ne_jax.atomic import atomic_write_json
+    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.eval import evaluate_split, save_images
+
+    split = load_split(scene_dir, split_name)
+    report, images = evaluate_split(run.render, params, scene, split, background, run.sampler.near,
+                                    run.sampler.far, progress=progress)
+    names = [f"{i:03d}_{Path(p).name}.png" for i, p in enumerate(split.file_paths)]
+    save_images(images, out / "images", names)
+    atomic_write_json(out / "metrics.json", report)
+    return report
+
+
+def _print_eval(report: dict, out: Path) -> None:
+    print(f"{report['split']}: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f} "
+          f"(mean of {report['num_views']} views, background {report['background']}) -> {out}")
+
+
+def _cmd_train(args) -> int:
+    from ne_jax.train.loop import train
+
+    run = _run_config(args)
+    scene_dir, out = Path(args.scene), Path(args.out)
+    t0 = time.perf_counter()
+    result = train(run, scene_dir, out, resume=not args.restart, progress=not args.quiet)
+    print(f"trained {run.total_steps} steps in {time.perf_counter() - t0:.1f} s -> {out}")
+    if not args.no_eval and (scene_dir / "transforms_test.json").exists():
+        report = _evaluate(run, result.state.params, result.scene, scene_dir, "test", out / "eval_test",
+                           run.background, progress=not args.quiet)
+        _print_eval(report, out / "eval_test")
+    return 0
+
+
+def _load(args):
+    from ne_jax.train.loop import load_trained
+
+    model = load_trained(args.run)
+    scene_dir = Path(args.scene) if getattr(args, "scene", None) else model.scene_dir
+    return model, scene_dir
+
+
+def _need_scene(scene_dir, run) -> Path:
+    if scene_dir is None:
+        raise FileNotFoundError(f"{run}: no scene folder recorded in metrics.json; pass --scene DIR")
+    return Path(scene_dir)
+
+
+def _cmd_eval(args) -> int:
+    model, scene_dir = _load(args)
+    scene_dir = _need_scene(scene_dir, args.run)
+    background = args.background or model.run.background
+    out = Path(args.out) if args.out else Path(args.run) / f"eval_{args.split}"
+    report = _evaluate(model.run, model.state.params, model.scene, scene_dir, args.split, out, background)
+    _print_eval(report, out)
+    return 0
+
+
+def _cmd_render(args) -> int:
+    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.eval import orbit_cameras_for, render_views, save_images, write_video
+
+    model, scene_dir = _load(args)
+    run = model.run
+    background = args.background or run.background
+    split = load_split(_need_scene(scene_dir, args.run), args.split)
+    if args.orbit:
+        cameras = orbit_cameras_for(split, args.orbit, args.elevation)
+        frames = render_views(run.render, model.state.params, model.scene, cameras, background, run.sampler.near,
+                              run.sampler.far)
+        path = write_video(frames, Path(args.out) if args.out else Path(args.run) / "orbit.mp4", fps=args.fps)
+        print(f"orbit: {len(cameras)} frames -> {path}")
+    else:
+        cameras = [split.camera(i) for i in range(split.num_views)]
+        images = render_views(run.render, model.state.params, model.scene, cameras, background, run.sampler.near,
+                              run.sampler.far)
+        out = Path(args.out) if args.out else Path(args.run) / f"render_{args.split}"
+        names = [f"{i:03d}_{Path(p).name}.png" for i, p in enumerate(split.file_paths)]
+        save_images(images, out, names)
+        print(f"{args.split}: {len(names)} images -> {out}")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from ne_jax.pointcloud.export import export_ply
+
+    model, _ = _load(args)
+    n = export_ply(args.out, model.run.render.shading, model.state.params, model.scene.points)
+    print(f"exported {n} points (xyz, normals, confidence, colour, index) -> {args.out}")
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from ne_jax.data.benchmark import generate_benchmark
+    from ne_jax.eval import orbit_cameras_for, render_views, write_video
+    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.train.loop import get_run_preset, train
     from ne_jax.viz import contact_sheet
 
     out = Path(args.out)
     t0 = time.perf_counter()
-    print(f"[1/2] generating the procedural benchmark (preset {args.preset!r}) in {out / 'benchmark'}")
+    print(f"[1/4] generating the procedural benchmark (preset {args.preset!r}) in {out / 'benchmark'}")
     report = generate_benchmark(out / "benchmark", args.preset, None, args.seed)
-    print(f"      {len(report['scenes'])} scenes x (original + 4 edits) in {report['seconds']:.1f} s")
-    print("[2/2] writing the contact sheet")
     sheet = contact_sheet(out / "benchmark", out / "contact_sheet.png",
                           title=f"ne_jax procedural benchmark, preset {args.preset!r} (test view at 45 degrees)")
+    print(f"      {len(report['scenes'])} scenes x (original + 4 edits) in {report['seconds']:.1f} s")
+    scene_dir = out / "benchmark" / args.scene
+    run = get_run_preset("tiny").replace(seed=args.seed)
+    print(f"[2/4] training scene {args.scene!r} (preset 'tiny': {run.epochs} epochs x {run.steps_per_epoch} steps, "
+          f"initial cloud by visual-hull carving)")
+    result = train(run, scene_dir, out / "run", resume=False)
+    print("[3/4] evaluating the test views")
+    ev = _evaluate(run, result.state.params, result.scene, scene_dir, "test", out / "run" / "eval_test",
+                   run.background)
+    _print_eval(ev, out / "run" / "eval_test")
+    print("[4/4] rendering an orbit")
+    cameras = orbit_cameras_for(load_split(scene_dir, "test"), args.orbit_frames)
+    frames = render_views(run.render, result.state.params, result.scene, cameras, run.background, run.sampler.near,
+                          run.sampler.far)
+    video = write_video(frames, out / "run" / "orbit.gif", fps=12)
     print(f"done in {time.perf_counter() - t0:.1f} s")
     print(f"  scenes (NeRF Synthetic layout): {out / 'benchmark'}")
     print(f"  contact sheet:                  {sheet}")
+    print(f"  training run (config, metrics, checkpoints): {out / 'run'}")
+    print(f"  test-view renders and metrics:  {out / 'run' / 'eval_test'}")
+    print(f"  orbit video:                    {video}")
     return 0
 
 
@@ -48,9 +183,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ne-jax", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="run the main job on the built-in default scenes")
+    demo = sub.add_parser("demo", help="run the main job on the built-in default scene")
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
     demo.add_argument("--preset", default="tiny", choices=["tiny", "default"], help="benchmark preset (default: tiny)")
+    demo.add_argument("--scene", default="blocks", choices=["stool", "cup", "blocks", "glossy"],
+                      help="the scene to train (default: blocks)")
+    demo.add_argument("--orbit-frames", type=int, default=36, help="frames of the orbit video (default: 36)")
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(func=_cmd_demo)
 
@@ -60,6 +198,49 @@ def build_parser() -> argparse.ArgumentParser:
     mb.add_argument("--scenes", nargs="+", default=None, help="subset of scenes (default: all)")
     mb.add_argument("--seed", type=int, default=0)
     mb.set_defaults(func=_cmd_make_benchmark)
+
+    tr = sub.add_parser("train", help="train a model of a scene folder")
+    tr.add_argument("scene", help="scene folder (NeRF Synthetic layout: transforms_train.json, images)")
+    tr.add_argument("--out", required=True, help="run directory (resumed from its latest checkpoint if it has one)")
+    tr.add_argument("--preset", default="tiny", choices=["tiny", "default", "paper"])
+    tr.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
+    tr.add_argument("--steps-per-epoch", type=int, default=None, help="override the preset's steps per epoch")
+    tr.add_argument("--batch-size", type=int, default=None, help="override the preset's rays per batch")
+    tr.add_argument("--init", default="carving", choices=["carving", "ply", "ground_truth"],
+                    help="initial cloud: visual-hull carving (default), a PLY (--ply), or the benchmark's "
+                         "ground-truth samples (labelled in the results)")
+    tr.add_argument("--ply", default=None, help="the initial cloud for --init ply")
+    tr.add_argument("--background", default="white", choices=["white", "black"])
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--restart", action="store_true", help="ignore existing checkpoints in --out")
+    tr.add_argument("--no-eval", action="store_true", help="skip evaluating the test views after training")
+    tr.add_argument("--quiet", action="store_true", help="no progress bars")
+    tr.set_defaults(func=_cmd_train)
+
+    def run_parser(name, help_):
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("run", help="a training run directory (from `ne-jax train`)")
+        p.add_argument("--scene", default=None, help="scene folder (default: the one the run was trained on)")
+        return p
+
+    ev = run_parser("eval", "PSNR/SSIM of a trained run on a split")
+    ev.add_argument("--split", default="test", choices=SCENE_SPLITS)
+    ev.add_argument("--background", default=None, choices=["white", "black"], help="default: the run's")
+    ev.add_argument("--out", default=None, help="output folder (default: RUN/eval_<split>)")
+    ev.set_defaults(func=_cmd_eval)
+
+    rd = run_parser("render", "render a trained run's views or an orbit video")
+    rd.add_argument("--split", default="test", choices=SCENE_SPLITS, help="views to render (and the orbit's intrinsics)")
+    rd.add_argument("--orbit", type=int, default=0, metavar="FRAMES", help="render a camera orbit of FRAMES frames")
+    rd.add_argument("--elevation", type=float, default=25.0, help="orbit elevation in degrees")
+    rd.add_argument("--fps", type=int, default=24)
+    rd.add_argument("--background", default=None, choices=["white", "black"], help="default: the run's")
+    rd.add_argument("--out", default=None, help="folder for views; .mp4/.gif file for an orbit (default: RUN/...)")
+    rd.set_defaults(func=_cmd_render)
+
+    ex = run_parser("export", "write a trained run's point cloud to PLY")
+    ex.add_argument("--out", required=True, help="the .ply file to write")
+    ex.set_defaults(func=_cmd_export)
     return parser
 
 

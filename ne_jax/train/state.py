@@ -14,6 +14,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -95,6 +96,25 @@ class TrainState:
     def scene(self, base: PointScene) -> PointScene:
         """``base`` (tree and fixed point arrays) with the trained per-point arrays."""
         return base.replace(points=self.point_state(base.points))
+
+    def with_points(self, points: PointState, reset) -> "TrainState":
+        """The state after the cloud changed between epochs: trainable per-point arrays taken from
+        ``points`` (capacity ``C'`` >= the current ``C``), Adam's per-point moments padded with zeros
+        to ``C'`` and zeroed at ``reset`` (``[C']`` bool or indices: slots that hold new points).
+        The colour model, its moments, ``step`` and ``key`` are unchanged."""
+        c_new = points.capacity
+        reset = jnp.zeros((c_new,), bool).at[jnp.asarray(reset, jnp.int32).reshape(-1)].set(True) \
+            if np.asarray(reset).dtype != bool else jnp.asarray(reset)
+
+        def fit(path, a):
+            if not any(getattr(k, "key", None) == "points" for k in path) or getattr(a, "ndim", 0) == 0:
+                return a
+            grown = jnp.concatenate([a, jnp.zeros((c_new - a.shape[0],) + a.shape[1:], a.dtype)])
+            return jnp.where(reset.reshape((-1,) + (1,) * (a.ndim - 1)), 0, grown)
+
+        pts = {"feature": jnp.asarray(points.feature, jnp.float32),
+               "conf_logit": jnp.asarray(points.conf_logit, jnp.float32)}
+        return self.replace(points=pts, opt_state=jax.tree_util.tree_map_with_path(fit, self.opt_state))
 
 
 def init_train_state(cfg: TrainConfig, render_cfg: RenderConfig, points: PointState,
