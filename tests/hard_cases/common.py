@@ -36,7 +36,7 @@ TOLERANCES = {
         ide=2e-5,  # IDE columns, absolute (every column is O(1))
         comp_rtol=2e-5, comp_atol=2e-6,  # compositing outputs
         shade_scale=2e-5,  # shade(f, s*n, s*d) vs shade(f, n, d), absolute on rgb in [0, 1]
-        render_scale=2e-4,  # render of a scene scaled by 1e-4 / 1e4 vs unscaled, absolute rgb
+        render_scale=1e-5,  # render of a scene scaled by 1e-4 / 1e4 vs unscaled, absolute rgb
     ),
     np.dtype(np.float64): dict(
         slab=64 * float(np.finfo(np.float64).eps),
