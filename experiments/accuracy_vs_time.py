@@ -575,13 +575,14 @@ def plot_all(results: dict, out_dir: Path, images: dict) -> list[str]:
     kn = results["knn"]
     rows = kn["rows"]
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
-    for k in sorted({r["k"] for r in rows}):
+    for i, k in enumerate(sorted({r["k"] for r in rows})):
         rr = [r for r in rows if r["k"] == k]
         kc = [r["candidates"] for r in rr]
-        axes[0].plot(kc, [r["recall"] for r in rr], "o-", label=f"K={k}")
-        axes[1].semilogy(kc, [r["diff_random_mean"] for r in rr], "o-", label=f"K={k}, random values")
-        axes[1].semilogy(kc, [r["diff_smooth_mean"] for r in rr], "s--", label=f"K={k}, smooth field")
-        axes[2].plot([r["ms_per_1e6_samples"] for r in rr], [r["recall"] for r in rr], "o-", label=f"K={k}")
+        c = f"C{i}"
+        axes[0].plot(kc, [r["recall"] for r in rr], "o-", color=c, label=f"K={k}")
+        axes[1].semilogy(kc, [r["diff_random_mean"] for r in rr], "o-", color=c, label=f"K={k}, random values")
+        axes[1].semilogy(kc, [r["diff_smooth_mean"] for r in rr], "s--", color=c, label=f"K={k}, smooth field")
+        axes[2].plot([r["ms_per_1e6_samples"] for r in rr], [r["recall"] for r in rr], "o-", color=c, label=f"K={k}")
     for i, e in enumerate(kn["exact"]):
         axes[2].plot([e["ms_per_1e6_samples"]], [e["recall_vs_scipy"]], "x", color=f"C{i}", ms=8,
                      label=f"exact mode K={e['k']}")
