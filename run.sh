@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # One entry point that sets itself up on a fresh machine (Python >= 3.11), then runs:
 #   bash run.sh demo [flags]   the main job on the built-in default scene (see `ne-jax demo --help`)
-#   bash run.sh test [flags]   the test suite (flags go to pytest)
+#   bash run.sh test [flags]   the test suite (flags go to pytest), then, as a second process, the
+#                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases);
+#                              with explicit test paths (bash run.sh test tests/foo) only those run
 #   bash run.sh <cmd> [flags]  any other `ne-jax` sub-command
 # The virtual environment lives in .venv and is re-installed only when pyproject.toml changes.
 set -euo pipefail
@@ -58,6 +60,14 @@ cmd="${1:-}"
 shift
 setup
 case "$cmd" in
-  test) exec .venv/bin/python -m pytest "$@" ;;
+  test)
+    # Explicit paths (an argument naming a file or folder, optionally with ::test): run just those.
+    for arg in "$@"; do
+      case "$arg" in -*) continue ;; esac
+      if [ -e "${arg%%::*}" ]; then exec .venv/bin/python -m pytest "$@"; fi
+    done
+    .venv/bin/python -m pytest "$@"
+    echo "run.sh: float64 step: JAX_ENABLE_X64=1 pytest tests/hard_cases" >&2
+    JAX_ENABLE_X64=1 exec .venv/bin/python -m pytest tests/hard_cases -q ;;
   *)    exec .venv/bin/ne-jax "$cmd" "$@" ;;
 esac
