@@ -389,32 +389,6 @@ def knn_study(sz: Sizes) -> dict:
 # ------------------------------------------------------------------------------------ precision
 
 
-X64_SHIM = ("under JAX_ENABLE_X64=1 integer and bool jnp.sum results become int64 and intersect's lax.scan "
-            "carry (int32 counters) fails to trace; both render processes patch jnp.sum so that integer and bool "
-            "sums keep int32, as they are without x64 (a no-op in the float32 process)")
-
-
-def _int32_sum_shim() -> None:
-    """Integer/bool ``jnp.sum`` keeps int32 (the library's counters assume the x32 result type). Needed
-    only under x64, applied in both render processes so that they run the same code."""
-    import jax.numpy as jnp
-
-    if getattr(jnp.sum, "_int32_shim", False):
-        return
-    plain = jnp.sum
-
-    def int32_sum(a, axis=None, dtype=None, *args, **kwargs):
-        a = jnp.asarray(a)
-        if dtype is None and a.dtype == jnp.bool_:
-            dtype = jnp.int32
-        elif dtype is None and jnp.issubdtype(a.dtype, jnp.integer) and a.dtype.itemsize <= 4:
-            dtype = a.dtype
-        return plain(a, axis, dtype, *args, **kwargs)
-
-    int32_sum._int32_shim = True
-    jnp.sum = int32_sum
-
-
 def make_model(sz: Sizes, path: str) -> None:
     """The precision study's model, made once in float32 and saved to ``path`` for both render processes:
     the glossy scene's surface samples, features ``0.5 N(0, 1)`` and the colour-model weights
@@ -442,7 +416,6 @@ def render_worker(dtype_name: str, sz: Sizes, model_npz: str, out_npz: str) -> N
     from ne_jax.render.renderer import PointScene, RenderConfig, render_chunked
     from ne_jax.render.shading import init_color_model
 
-    _int32_sum_shim()
     dtype = np.dtype(dtype_name)
     if dtype == np.float64 and not jax.config.jax_enable_x64:
         raise RuntimeError("float64 rendering needs JAX_ENABLE_X64=1")
@@ -514,7 +487,7 @@ def precision_study(sz: Sizes, handle: dict | None = None) -> dict:
     per_pixel = d_rgb.max(-1)
     return {
         "preset": sz.render_preset, "points": sz.render_points, "image": f"{sz.render_res}x{sz.render_res}",
-        "views": sz.render_views, "rays": int(per_pixel.size), "x64_workaround": X64_SHIM,
+        "views": sz.render_views, "rays": int(per_pixel.size),
         "model": "random colour model (init_color_model, key 1), features 0.5 N(0, 1), confidence sigmoid(2), "
                  "the glossy scene's surface samples; float64 run: the same values cast",
         "rgb_max_abs_diff": float(d_rgb.max()), "rgb_mean_abs_diff": float(d_rgb.mean()),
@@ -756,8 +729,7 @@ def discussion(res: dict) -> list[str]:
         f"different number of segments), opacity by at most {_g(pr['opacity_max_abs_diff'])}, and costs "
         f"{pr['time_ratio_f64_over_f32']}x the time on this CPU"
         + (" (timed concurrently: ratio not meaningful)" if pr.get("timed_concurrently") else "")
-        + ". float32 is enough: the difference is far below an 8-bit colour step (1/255 ~ 4e-3). (The float64 "
-        "run needs a workaround for a library bug under x64, see `x64_workaround` in the JSON.)",
+        + ". float32 is enough: the difference is far below an 8-bit colour step (1/255 ~ 4e-3).",
     ]
 
 
