@@ -95,20 +95,24 @@ def main(argv=None) -> None:
             print(f"== {name}", flush=True)
             scenes[name] = run_scene(root / name, run, runs / name, args.progress)
             print(json.dumps(scenes[name]), flush=True)
+            text = write_results(args.preset, run, scenes)  # after every scene: a long run keeps what it has
+    print(text)
 
+
+def write_results(preset: str, run, scenes: dict) -> str:
     report = {
         "what": "train each benchmark scene from a visual-hull carving; test PSNR/SSIM on full images; "
                 "Chamfer distance (world units, mean of both directions) of the initial and the final cloud "
                 "to the ground-truth surface samples",
-        "preset": args.preset, "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
+        "preset": preset, "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
         "batch_size": run.sampler.batch_size, "background": run.background,
         "scenes": scenes,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
     }
     RESULTS.mkdir(exist_ok=True)
-    atomic_write_json(RESULTS / f"train_benchmark_{args.preset}.json", report)
-    lines = [f"Preset `{args.preset}`: {run.epochs} epochs x {run.steps_per_epoch} steps of {run.sampler.batch_size} "
-             f"rays; `python experiments/train_benchmark.py --preset {args.preset}`.", "",
+    atomic_write_json(RESULTS / f"train_benchmark_{preset}.json", report)
+    lines = [f"Preset `{preset}`: {run.epochs} epochs x {run.steps_per_epoch} steps of {run.sampler.batch_size} "
+             f"rays; `python experiments/train_benchmark.py --preset {preset}`.", "",
              "| scene | test PSNR (dB) | test SSIM | train time (s) | points initial -> final | "
              "Chamfer initial -> final | ratio |", "|---|---:|---:|---:|---|---|---:|"]
     for name, s in scenes.items():
@@ -116,8 +120,8 @@ def main(argv=None) -> None:
                      f"{s['initial_points']} -> {s['final_points']} | {s['chamfer_initial']:.4f} -> "
                      f"{s['chamfer_final']:.4f} | {s['chamfer_ratio']:.2f} |")
     text = "\n".join(lines) + "\n"
-    atomic_write_text(RESULTS / f"train_benchmark_{args.preset}.md", text)
-    print(text)
+    atomic_write_text(RESULTS / f"train_benchmark_{preset}.md", text)
+    return text
 
 
 if __name__ == "__main__":
