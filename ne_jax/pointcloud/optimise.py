@@ -40,7 +40,7 @@ from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import Views
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import level_samples
-from ne_jax.render.renderer import PointScene, RenderConfig, _values_needed, render_rays
+from ne_jax.render.renderer import PointScene, RenderConfig, values_needed, render_rays
 from ne_jax.render.shading import shade
 
 
@@ -118,7 +118,7 @@ def scan_growth(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
     t, w = level_samples(cfg.quadrature, seg.t_lo, seg.t_hi, level_index)  # [R, M, S]
     pos = rays.origin[:, None, None, :] + t[..., None] * rays.direction[:, None, None, :]
     nb = knn_neighbors(pts, tree, pos, seg.node, cfg.tree)  # [R, M, S, K], candidates once per segment
-    values = interpolate(nb, _values_needed(pts, cfg.shading.effects))
+    values = interpolate(nb, values_needed(pts, cfg.shading.effects))
     view = jnp.broadcast_to(rays.direction[:, None, None, :], pos.shape)
     sigma = shade(cfg.shading, params, values["feature"], values.get("normal"), view, values.get("ist")).sigma
     nearest = jnp.min(jnp.where(nb.valid, nb.dist, jnp.inf), axis=-1)  # [R, M, S]

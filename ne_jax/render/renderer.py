@@ -147,7 +147,7 @@ class RenderOut:
     dropped: jax.Array
 
 
-def _values_needed(points: PointState, effects: Effects) -> dict:
+def values_needed(points: PointState, effects: Effects) -> dict:
     """Only the per-point arrays the declared effects read."""
     values = {"feature": points.feature}
     if effects.uses_point_normals:
@@ -264,7 +264,7 @@ def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direct
     effects = cfg.shading.effects
     t, w = level_samples(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
     pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
-    needed = _values_needed(scene.points, effects)
+    needed = values_needed(scene.points, effects)
     if aux:
         conf = scene.points.confidence
         n = scene.points.normal
