@@ -112,7 +112,7 @@ class RunConfig:
             raise ValueError(f"RunConfig: expected epochs >= 1 and steps_per_epoch >= 1, found "
                              f"{self.epochs} and {self.steps_per_epoch}")
         a, b = self.point_rounds
-        if not 1 <= a and a <= b + 1:
+        if not 1 <= a <= b + 1:
             raise ValueError(f"RunConfig.point_rounds: expected (first, last) with 1 <= first <= last + 1, found {self.point_rounds}")
 
     def replace(self, **changes) -> "RunConfig":
