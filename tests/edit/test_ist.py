@@ -1,0 +1,186 @@
+"""IST: exact on rigid motions and on linear maps that keep the normal direction, equal to a float64
+numpy reference of the frame map's polar factor elsewhere, finite and orthogonal on degenerate
+frames, differentiable."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ne_jax.edit.deformations import bend_points, rotation_matrix
+from ne_jax.edit.ist import ISTConfig, compute_ist, ist_from_plan, nearest_rotation, plan_ist
+from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
+
+UNORIENTED = NormalConfig(orient="none")
+R = np.asarray(rotation_matrix([1.0, 2.0, 3.0], 0.7), np.float64)
+
+
+def sphere(n=1500, seed=0):
+    x = np.random.default_rng(seed).normal(size=(n, 3))
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def plane(m=30):
+    g = np.stack(np.meshgrid(np.linspace(-1, 1, m), np.linspace(-1, 1, m)), -1).reshape(-1, 2)
+    g = g + np.random.default_rng(1).uniform(-0.01, 0.01, g.shape)  # no exact grid ties
+    return np.c_[g, np.zeros(len(g))], np.tile([0.0, 0.0, 1.0], (len(g), 1))
+
+
+def ist_of(x0, n0, x1, n1, alive=None, cfg=ISTConfig(), conf=None):
+    alive = np.ones(len(x0), bool) if alive is None else alive
+    conf = np.full(len(x0), 0.5) if conf is None else conf
+    ist, sign, report = compute_ist(cfg, x0, n0, x1, n1, alive, conf)
+    return np.asarray(ist, np.float64), np.asarray(sign), report
+
+
+def assert_rotations(ist, tol=1e-5):
+    assert np.isfinite(ist).all()
+    eye = np.einsum("cji,cjk->cik", ist, ist)
+    np.testing.assert_allclose(eye, np.broadcast_to(np.eye(3), eye.shape), atol=tol)
+    np.testing.assert_allclose(np.linalg.det(ist), 1.0, atol=tol)
+
+
+def test_global_rotation_gives_r_transpose_everywhere():
+    x0 = sphere()
+    n0 = estimate_normals(UNORIENTED, x0)
+    x1 = x0 @ R.T
+    n1 = estimate_normals(UNORIENTED, x1)  # re-estimated, own arbitrary signs
+    ist, sign, report = ist_of(x0, n0, x1, n1)
+    assert report["good"] == len(x0)
+    # float32 arithmetic on O(1) values; Open3D's normals of the rotated cloud differ by ~1e-7
+    np.testing.assert_allclose(ist, np.broadcast_to(R.T, ist.shape), atol=1e-5)
+    # the orientation sign turns the edited normals into the rotated original ones
+    np.testing.assert_allclose(sign[:, None] * n1, n0 @ R.T, atol=1e-4)
+
+
+def test_identity_edit_gives_identity():
+    x0 = sphere()
+    n0 = estimate_normals(UNORIENTED, x0)
+    ist, sign, _ = ist_of(x0, n0, x0, n0)
+    np.testing.assert_allclose(ist, np.broadcast_to(np.eye(3), ist.shape), atol=1e-5)
+    assert (sign == 1).all()
+
+
+@pytest.mark.parametrize("stretch", [(1.5, 0.7, 1.3), (0.4, 2.5, 0.2)])
+def test_linear_map_keeping_the_normal_gives_its_rotation_part(stretch):
+    x0, n0 = plane()
+    lin = R @ np.diag(stretch)  # polar decomposition R S, the plane normal an eigenvector of S
+    x1 = x0 @ lin.T
+    n1 = -np.tile(np.linalg.inv(lin).T @ [0, 0, 1.0], (len(x0), 1))  # deliberately the flipped sign
+    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+    ist, sign, report = ist_of(x0, n0, x1, n1)
+    assert report["good"] == len(x0)
+    np.testing.assert_allclose(ist, np.broadcast_to(R.T, ist.shape), atol=1e-5)
+    assert (sign == -1).all()
+
+
+def reference_frame_polar(x0, n0, x1, n1, pair):
+    """float64 numpy loops: polar factor of A B^-1 with handedness-oriented edited normal."""
+    out = np.zeros((len(x0), 3, 3))
+    for j, (a, b) in enumerate(pair):
+        t = lambda d, n: d - (d @ n) * n
+        ua, ub = t(x0[a] - x0[j], n0[j]), t(x0[b] - x0[j], n0[j])
+        va, vb = t(x1[a] - x1[j], n1[j]), t(x1[b] - x1[j], n1[j])
+        s = np.sign(np.cross(ua, ub) @ n0[j]) * np.sign(np.cross(va, vb) @ n1[j])
+        m = np.column_stack([ua, ub, n0[j]]) @ np.linalg.inv(np.column_stack([va, vb, s * n1[j]]))
+        u, _, vt = np.linalg.svd(m)
+        out[j] = u @ vt
+    return out
+
+
+def test_general_linear_map_matches_float64_reference():
+    x0, n0 = plane(20)
+    sym = np.array([[1.4, 0.3, 0.2], [0.3, 0.8, -0.25], [0.2, -0.25, 1.1]])  # SPD, normal not an eigenvector
+    lin = R @ sym
+    x1 = x0 @ lin.T
+    n1 = estimate_normals(UNORIENTED, x1).astype(np.float64)
+    cfg = ISTConfig(smooth_iters=0)
+    plan = plan_ist(cfg, x0, n0, x1, n1, np.ones(len(x0), bool), np.full(len(x0), 0.5))
+    ist, _, _ = ist_of(x0, n0, x1, n1, cfg=cfg)
+    ref = reference_frame_polar(x0, n0, x1, n1, np.asarray(plan.pair))
+    np.testing.assert_allclose(ist, ref, atol=2e-5)  # float32 solve + Newton vs float64 SVD
+    # for a linear map the frame map does not depend on which two neighbours span the frame
+    other = ISTConfig(smooth_iters=0, candidates=3)
+    pair3 = np.asarray(plan_ist(other, x0, n0, x1, n1, np.ones(len(x0), bool), np.full(len(x0), 0.5)).pair)
+    assert (pair3 != np.asarray(plan.pair)).any()
+    np.testing.assert_allclose(ist_of(x0, n0, x1, n1, cfg=other)[0], ist, atol=2e-5)
+
+
+def test_bend_matches_the_jacobian_rotation_on_the_surface():
+    x0, n0 = plane(40)
+    bend = lambda p: bend_points(p, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), np.deg2rad(60.0), 2.0)
+    x1 = np.asarray(bend(jnp.asarray(x0, jnp.float32)), np.float64)
+    n1 = estimate_normals(UNORIENTED, x1)
+    ist, _, report = ist_of(x0, n0, x1, n1)
+    assert report["good"] > 0.95 * len(x0)
+    jac = np.asarray(jax.vmap(jax.jacfwd(lambda p: bend(p[None])[0]))(jnp.asarray(x0, jnp.float32)), np.float64)
+    u, _, vt = np.linalg.svd(np.linalg.inv(jac))  # a bend is locally a rotation: polar(J^-1) = J^-1
+    expected = u @ vt
+    angle = np.degrees(np.arccos(np.clip((np.einsum("cij,cij->c", ist, expected) - 1) / 2, -1, 1)))
+    interior = np.all(np.abs(x0[:, :2]) < 0.9, axis=1)  # PCA normals tilt at the border
+    assert np.median(angle[interior]) < 0.5 and angle[interior].max() < 3.0
+
+
+def test_degenerate_frames_are_finite_rotations():
+    rng = np.random.default_rng(3)
+    line = np.c_[np.linspace(-1, 1, 40), np.zeros(40), np.zeros(40)]
+    dup = np.repeat(sphere(100), 3, axis=0)  # coincident triples
+    x0 = np.concatenate([line, dup, sphere(200, 2)])
+    n0 = np.concatenate([np.zeros((40, 3)), estimate_normals(UNORIENTED, x0[40:])])  # zero normals on the line
+    x1 = x0 @ R.T
+    n1 = np.concatenate([np.zeros((40, 3)), estimate_normals(UNORIENTED, x1[40:])])
+    alive = rng.uniform(size=len(x0)) > 0.3  # deleted neighbours
+    ist, sign, report = ist_of(x0, n0, x1, n1, alive=alive)
+    assert_rotations(ist)
+    assert np.isfinite(sign).all()
+    assert report["good"] + report["filled"] + report["identity"] == alive.sum()
+    # where a frame exists or was filled, it is the rotation's
+    ok = np.abs(ist - R.T).max(axis=(1, 2)) < 1e-4
+    assert ok[alive].mean() > 0.5
+    np.testing.assert_allclose(ist[~alive], np.broadcast_to(np.eye(3), ist[~alive].shape))
+
+
+def test_all_collinear_cloud_falls_back_to_identity():
+    x0 = np.c_[np.linspace(-1, 1, 30), np.zeros(30), np.zeros(30)]
+    n0 = np.tile([0.0, 0.0, 1.0], (30, 1))
+    ist, _, report = ist_of(x0, n0, x0 @ R.T, n0 @ R.T)
+    assert report["good"] == 0 and report["identity"] == 30
+    np.testing.assert_allclose(ist, np.broadcast_to(np.eye(3), ist.shape))
+
+
+def test_nearest_rotation_matches_svd_polar():
+    rng = np.random.default_rng(5)
+    m = rng.normal(size=(200, 3, 3))
+    m[np.linalg.det(m) < 0, :, 0] *= -1
+    cond = np.linalg.cond(m)
+    m = m[cond < 50]
+    u, _, vt = np.linalg.svd(m)
+    got = np.asarray(nearest_rotation(jnp.asarray(m, jnp.float32)), np.float64)
+    np.testing.assert_allclose(got, u @ vt, atol=2e-5)
+    rot = np.asarray(rotation_matrix([0.3, -1.0, 0.5], 2.0))
+    np.testing.assert_allclose(np.asarray(nearest_rotation(jnp.asarray(rot))), rot, atol=2e-7)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.7])
+def test_gradients_through_the_ist_are_finite(angle):
+    """d/dtheta of the IST under a fixed plan, on a cloud with degenerate points too; at theta = 0
+    (identity) as well. Checked against a central difference."""
+    x0 = np.concatenate([sphere(300), np.c_[np.linspace(-1, 1, 10), np.zeros(10), np.zeros(10)]])
+    n0 = np.concatenate([estimate_normals(UNORIENTED, x0[:300]), np.zeros((10, 3))])
+    cfg = ISTConfig()
+    rot = lambda t: rotation_matrix([0.0, 0.3, 1.0], t)
+    x1 = x0 @ np.asarray(rot(angle)).T
+    n1 = np.concatenate([estimate_normals(UNORIENTED, x1[:300]), np.zeros((10, 3))])
+    plan = plan_ist(cfg, x0, n0, x1, n1, np.ones(310, bool), np.full(310, 0.5))
+    x0j, n0j, n1j = (jnp.asarray(a, jnp.float32) for a in (x0, n0, n1))
+    w = jnp.asarray(np.random.default_rng(0).normal(size=(310, 3, 3)), jnp.float32)
+
+    def f(t):
+        ist = ist_from_plan(cfg, plan, x0j, n0j, x0j @ rot(t).T, n1j)[0]
+        return jnp.sum(ist * w)
+
+    g = jax.grad(f)(jnp.float32(angle))
+    assert np.isfinite(float(g))
+    h = 1e-2
+    fd = (float(f(jnp.float32(angle + h))) - float(f(jnp.float32(angle - h)))) / (2 * h)
+    assert abs(float(g) - fd) < 0.02 * max(1.0, abs(fd))
