@@ -4,7 +4,8 @@
    points, deletions as ``alive = False`` (capacity and indices unchanged).
 2. Normals re-estimated with Open3D on the edited cloud (unoriented), then oriented by the IST
    (the sign that keeps each local frame's handedness, :mod:`ne_jax.edit.ist`), so an edited normal
-   points to the same side of the surface as the original one did.
+   points to the same side of the surface as the original one did. Points whose neighbourhood did
+   not move keep their normal (and so the identity IST), also next to a deletion.
 3. The IST of every point. Editing an already edited state composes: the new IST maps the newest
    space to the previous one, and the stored IST (to the original space) is ``IST_old @ IST_new``.
 
@@ -68,9 +69,17 @@ def plan_edit(cfg: EditConfig, points: PointState, xyz, deleted) -> EditPlan:
     """Host-side choices for the edit ``points -> (xyz [C, 3], deleted [C])``."""
     xyz = np.asarray(xyz)
     alive = np.asarray(points.alive) & ~np.asarray(deleted, bool)
+    xyz0, normal0, conf = np.asarray(points.xyz), np.asarray(points.normal), np.asarray(points.confidence)
     normals = _edited_normals(cfg, xyz, alive)
-    plan = plan_ist(cfg.ist, np.asarray(points.xyz), np.asarray(points.normal), xyz, normals, alive,
-                    np.asarray(points.confidence))
+    plan = plan_ist(cfg.ist, xyz0, normal0, xyz, normals, alive, conf)
+    # a point whose neighbourhood did not move keeps its normal: re-estimating it next to a deletion
+    # would only tilt it (a truncated neighbourhood), and its IST must stay the identity
+    moved = np.any(xyz != xyz0, axis=1)
+    nbrs, used = np.asarray(plan.neighbors), np.asarray(plan.weight) > 0
+    still = alive & ~moved & ~np.any(moved[nbrs] & used, axis=1)
+    if still.any():
+        normals[still] = normal0[still]
+        plan = plan_ist(cfg.ist, xyz0, normal0, xyz, normals, alive, conf)
     return EditPlan(alive=jnp.asarray(alive), normal=jnp.asarray(normals, points.normal.dtype), ist=plan)
 
 
