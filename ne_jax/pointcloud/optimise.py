@@ -130,8 +130,11 @@ def scan_growth(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
     found = (jnp.max(score, axis=-1) >= min_sigma) & (take(nearest) >= min_distance * tree.spacing)  # ... in a gap
     rgb = render_rays(cfg, params, scene, rays, background).rgb
     error = jnp.mean(jnp.square(rgb - rays.target[:, :3]), axis=-1)
-    return {"xyz": take(pos), "feature": take(values["feature"]), "sigma": take(sigma), "found": found,
-            "error": error}
+    out = {"xyz": take(pos), "feature": take(values["feature"]), "sigma": take(sigma), "found": found,
+           "error": error}
+    if "ist" in values:  # an edited model: new points take the interpolated IST
+        out["ist"] = take(values["ist"])
+    return out
 
 
 def select_growth(xyz: np.ndarray, priority: np.ndarray, cell: float, max_new: int) -> np.ndarray:
@@ -148,10 +151,10 @@ def select_growth(xyz: np.ndarray, priority: np.ndarray, cell: float, max_new: i
 
 
 def add_points(points: PointState, xyz: np.ndarray, feature: np.ndarray, confidence: float = 0.5,
-               headroom: float = 1.25) -> tuple[PointState, np.ndarray]:
-    """Host side: ``points`` with ``[N, 3]`` new points (features ``[N, F]``) in dead slots, first
-    come first; when there are fewer dead slots than new points, the capacity grows to
-    ``ceil((alive + N) * headroom)`` (new slots dead, normals zero, IST identity).
+               headroom: float = 1.25, ist: np.ndarray | None = None) -> tuple[PointState, np.ndarray]:
+    """Host side: ``points`` with ``[N, 3]`` new points (features ``[N, F]``, ISTs ``[N, 3, 3]`` or
+    the identity) in dead slots, first come first; when there are fewer dead slots than new points,
+    the capacity grows to ``ceil((alive + N) * headroom)`` (new slots dead, normals zero, IST identity).
     Returns ``(points, slots [N])`` -- where the new points went."""
     xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
     n = xyz.shape[0]
@@ -169,7 +172,8 @@ def add_points(points: PointState, xyz: np.ndarray, feature: np.ndarray, confide
         feature=points.feature.at[j].set(jnp.asarray(feature, points.feature.dtype)),
         conf_logit=points.conf_logit.at[j].set(logit),
         normal=points.normal.at[j].set(0.0),
-        ist=points.ist.at[j].set(jnp.eye(3, dtype=points.ist.dtype)),
+        ist=points.ist.at[j].set(jnp.eye(3, dtype=points.ist.dtype) if ist is None
+                                 else jnp.asarray(ist, points.ist.dtype).reshape(-1, 3, 3)),
     )
     return points, slots
 
@@ -214,7 +218,7 @@ def grow_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, sce
     pick = found[select_growth(scan["xyz"][found], scan["error"][found], cfg.grow_cell * spacing, max_new)]
     capacity = scene.points.capacity
     points, slots = add_points(scene.points, scan["xyz"][pick], scan["feature"][pick],
-                               headroom=cfg.capacity_headroom)
+                               headroom=cfg.capacity_headroom, ist=scan["ist"][pick] if "ist" in scan else None)
     report = {"rays": int(n), "candidates": int(found.size), "added": int(pick.size),
               "capacity_before": capacity, "capacity_after": points.capacity,
               "reallocated": points.capacity != capacity}

@@ -114,6 +114,25 @@ def config_from_json(data: Any) -> Any:
     return data
 
 
+def _is_default(node: dict, name: str) -> bool:
+    """Whether field ``name`` of the encoded dataclass ``node`` holds the dataclass's default."""
+    try:
+        module, _, qualname = node["__type__"].partition(":")
+        obj = importlib.import_module(module)
+        for part in qualname.split("."):
+            obj = getattr(obj, part)
+        field = {f.name: f for f in dataclasses.fields(obj)}[name]
+    except (KeyError, ImportError, AttributeError, TypeError):
+        return False
+    if field.default is not dataclasses.MISSING:
+        default = field.default
+    elif field.default_factory is not dataclasses.MISSING:
+        default = field.default_factory()
+    else:
+        return False
+    return config_to_json(default) == node[name]
+
+
 def config_diff(found: Any, expected: Any, prefix: str = "") -> list[str]:
     """Dotted names of the fields where two :func:`config_to_json` trees differ, with both values."""
     def is_node(x):
@@ -124,6 +143,8 @@ def config_diff(found: Any, expected: Any, prefix: str = "") -> list[str]:
         for k in sorted(set(found) | set(expected), key=str):
             name = f"{prefix}.{k}" if prefix else str(k)
             if k not in found:
+                if _is_default(expected, k):  # a field added later, at its default: same config
+                    continue
                 out.append(f"{name} (missing in checkpoint; run has {expected[k]!r})")
             elif k not in expected:
                 out.append(f"{name} (unknown to this run; checkpoint has {found[k]!r})")

@@ -225,6 +225,17 @@ class TrainResult:
     initial: dict
 
 
+@dataclasses.dataclass
+class StartFrom:
+    """Start a run from a model instead of an initial cloud (fine-tuning): the colour model's
+    ``params``, the ``points`` (features, confidences, ISTs) and a ``note`` recorded in
+    ``metrics.json`` as the run's ``initial_cloud``. The optimiser starts afresh."""
+
+    params: dict
+    points: PointState
+    note: dict
+
+
 class TrainingDiverged(RuntimeError):
     """Every step of an epoch was refused for non-finite values; the message names the terms."""
 
@@ -281,7 +292,7 @@ def _check_resume_config(run_dir: Path, run: RunConfig) -> None:
 
 def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume: bool = True,
           progress: bool = True, log: Callable[[str], None] = print, stop_after_epoch: int | None = None,
-          split: SceneSplit | None = None) -> TrainResult:
+          split: SceneSplit | None = None, start: StartFrom | None = None) -> TrainResult:
     """Train a model of the scene in ``scene_dir`` (NeRF Synthetic layout, ``train`` split).
 
     Args:
@@ -293,6 +304,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         log: where one-line messages go (``print``; ``lambda s: None`` to silence).
         stop_after_epoch: return after this epoch (as if the run were stopped there).
         split: the training split, if already loaded (else read from ``scene_dir``).
+        start: begin from this model instead of ``run.init``'s cloud (ignored when resuming).
 
     Raises:
         DataError / ValueError: a bad scene folder (named), masks without foreground, a bad config.
@@ -319,6 +331,11 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         extra = meta.get("extra", {})
         history, initial = list(extra.get("history", [])), extra.get("initial_cloud", {})
         log(f"resuming {run_dir} from {latest.name} (step {int(state.step)}, epoch {len(history)})")
+    elif start is not None:
+        points = start.points
+        state = init_train_state(run.train, run.render, points, k_model).replace(params=start.params)
+        initial = {"source": "model", "points": int(np.asarray(points.alive).sum()), "capacity": points.capacity,
+                   "ground_truth": False, **_json_safe(dict(start.note))}
     else:
         t0 = time.perf_counter()
         cloud = initial_cloud(run.init, scene_dir, views)
@@ -466,6 +483,6 @@ def _epoch_line(r: dict) -> str:
     return line
 
 
-__all__ = ["CONFIG_FILE", "INIT_SOURCES", "METRICS_FILE", "PRESETS", "InitConfig", "RunConfig", "TrainResult",
+__all__ = ["CONFIG_FILE", "INIT_SOURCES", "METRICS_FILE", "PRESETS", "InitConfig", "RunConfig", "StartFrom", "TrainResult",
            "TrainedModel", "TrainingDiverged", "get_run_preset", "initial_cloud", "initial_points", "load_run_config",
            "load_trained", "train"]

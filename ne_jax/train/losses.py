@@ -46,7 +46,7 @@ from jax import lax
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import RenderOut, SegmentAux
 
-TERMS = ("photometric", "orientation", "normal", "confidence", "sparsity")
+TERMS = ("photometric", "orientation", "normal", "confidence", "sparsity", "ist_orthogonality")
 """Names of the loss terms, in the order they are reported."""
 
 
@@ -67,6 +67,9 @@ class LossConfig:
     """Weight of the confidence regulariser (a small push away from 0.5, as PointNeRF's zero-one loss)."""
     sparsity: float = 1e-4
     """Weight of the Cauchy density sparsity term."""
+    ist_orthogonality: float = 0.0
+    """Weight of ``mean_alive |IST^T IST - I|_F^2``, which keeps trainable ISTs rotations (fine-tuning
+    with ``TrainConfig.train_ist``; 0 otherwise: the term is then not computed)."""
     confidence_eps: float = 1e-3
     """Clip of the confidence regulariser: no push beyond ``[eps, 1 - eps]``."""
     sparsity_scale: float = 0.5
@@ -142,6 +145,13 @@ def sparsity_loss(aux: SegmentAux, scale: float = 0.5) -> jax.Array:
     return jnp.mean(jnp.sum(jnp.log1p(jnp.square(tau) / scale), axis=-1))
 
 
+def ist_orthogonality_loss(ist: jax.Array, alive: jax.Array) -> jax.Array:
+    """``mean_alive |IST^T IST - I|_F^2`` over ``ist [C, 3, 3]``, ``alive [C]``."""
+    gram = jnp.einsum("cji,cjk->cik", ist, ist) - jnp.eye(3, dtype=ist.dtype)
+    per_point = jnp.where(alive, jnp.sum(jnp.square(gram), axis=(-2, -1)), 0.0)
+    return jnp.sum(per_point) / jnp.maximum(jnp.sum(alive), 1).astype(per_point.dtype)
+
+
 def loss_terms(cfg: LossConfig, out: RenderOut, aux: SegmentAux, target: jax.Array,
                points: PointState) -> dict[str, jax.Array]:
     """The enabled terms (unweighted scalars), keyed as :meth:`LossConfig.weights`.
@@ -160,6 +170,8 @@ def loss_terms(cfg: LossConfig, out: RenderOut, aux: SegmentAux, target: jax.Arr
         terms["confidence"] = confidence_loss(points.conf_logit, points.alive, cfg.confidence_eps)
     if "sparsity" in enabled:
         terms["sparsity"] = sparsity_loss(aux, cfg.sparsity_scale)
+    if "ist_orthogonality" in enabled:
+        terms["ist_orthogonality"] = ist_orthogonality_loss(points.ist, points.alive)
     return terms
 
 
@@ -173,6 +185,7 @@ __all__ = [
     "TERMS",
     "LossConfig",
     "confidence_loss",
+    "ist_orthogonality_loss",
     "loss_terms",
     "normal_loss",
     "normal_mismatch",

@@ -3,8 +3,8 @@
 :class:`TrainConfig` holds the static settings of the step (loss weights, optimiser schedule);
 :class:`TrainState` is the frozen pytree the step maps to a new one. What is trained: the colour
 model's parameters and the per-point ``feature`` and ``conf_logit`` arrays (the paper: "point
-features and confidences are parameters"). Point positions, normals, ISTs, ``alive`` and the K-D tree
-are fixed during a step; they live in the :class:`~ne_jax.render.renderer.PointScene` passed to the
+features and confidences are parameters"), and the ISTs when ``TrainConfig.train_ist`` (fine-tuning an
+edited model). Point positions, normals, ``alive`` and the K-D tree are fixed during a step; they live in the :class:`~ne_jax.render.renderer.PointScene` passed to the
 step (whose own ``feature``/``conf_logit`` are replaced by the state's).
 """
 
@@ -43,6 +43,9 @@ class TrainConfig:
     """Adam's second-moment decay."""
     adam_eps: float = 1e-8
     """Adam's epsilon."""
+    train_ist: bool = False
+    """Fine-tuning an edited model: the per-point ISTs are trainable too (paper Sec. 4); pair it
+    with ``loss.ist_orthogonality > 0`` to keep them rotations. Off: the ISTs are fixed inputs."""
 
     def __post_init__(self):
         if not self.lr > 0:
@@ -70,7 +73,8 @@ class TrainState:
 
     Attributes:
         params: colour-model parameters (``init_color_model``'s tree).
-        points: ``{"feature": [C, F], "conf_logit": [C]}`` the trainable per-point arrays.
+        points: ``{"feature": [C, F], "conf_logit": [C]}`` the trainable per-point arrays (and
+            ``"ist": [C, 3, 3]`` when ``TrainConfig.train_ist``).
         opt_state: optax state of :meth:`TrainConfig.optimizer` over ``trainables``.
         step: ``[]`` int32 steps applied (skipped steps do not count).
         key: PRNG key (split each step; used by the stochastic integration rule).
@@ -90,8 +94,8 @@ class TrainState:
         return {"params": self.params, "points": self.points}
 
     def point_state(self, base: PointState) -> PointState:
-        """``base`` with the trained ``feature`` and ``conf_logit``."""
-        return base.replace(feature=self.points["feature"], conf_logit=self.points["conf_logit"])
+        """``base`` with the trained ``feature`` and ``conf_logit`` (and ``ist`` when trained)."""
+        return base.replace(**self.points)
 
     def scene(self, base: PointScene) -> PointScene:
         """``base`` (tree and fixed point arrays) with the trained per-point arrays."""
@@ -112,9 +116,15 @@ class TrainState:
             grown = jnp.concatenate([a, jnp.zeros((c_new - a.shape[0],) + a.shape[1:], a.dtype)])
             return jnp.where(reset.reshape((-1,) + (1,) * (a.ndim - 1)), 0, grown)
 
-        pts = {"feature": jnp.asarray(points.feature, jnp.float32),
-               "conf_logit": jnp.asarray(points.conf_logit, jnp.float32)}
+        pts = _trainable_points(points, "ist" in self.points)
         return self.replace(points=pts, opt_state=jax.tree_util.tree_map_with_path(fit, self.opt_state))
+
+
+def _trainable_points(points: PointState, ist: bool) -> dict:
+    pts = {"feature": jnp.asarray(points.feature, jnp.float32), "conf_logit": jnp.asarray(points.conf_logit, jnp.float32)}
+    if ist:
+        pts["ist"] = jnp.asarray(points.ist, jnp.float32)
+    return pts
 
 
 def init_train_state(cfg: TrainConfig, render_cfg: RenderConfig, points: PointState,
@@ -126,8 +136,7 @@ def init_train_state(cfg: TrainConfig, render_cfg: RenderConfig, points: PointSt
                          f"{render_cfg.shading.feature_dim}")
     k_model, k_state = jax.random.split(key)
     params = init_color_model(render_cfg.shading, k_model)
-    pts = {"feature": jnp.asarray(points.feature, jnp.float32),
-           "conf_logit": jnp.asarray(points.conf_logit, jnp.float32)}
+    pts = _trainable_points(points, cfg.train_ist)
     opt_state = cfg.optimizer().init({"params": params, "points": pts})
     return TrainState(params=params, points=pts, opt_state=opt_state, step=jnp.zeros((), jnp.int32),
                       key=k_state, skipped=jnp.zeros((), jnp.int32))

@@ -63,19 +63,20 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
         target = batch.rays.target[:, :3]
 
         def render_part(trainables):  # trainables -> the float inputs of the losses
-            pts = scene.points.replace(feature=trainables["points"]["feature"],
-                                       conf_logit=trainables["points"]["conf_logit"])
+            pts = scene.points.replace(**trainables["points"])
             out, aux = render_rays_with_aux(render_cfg, trainables["params"], scene.replace(points=pts),
                                             batch.rays, batch.background, k_render if stochastic else None)
             inter = {f.name: getattr(aux, f.name) for f in dataclasses.fields(aux) if f.name != "valid"}
             inter.update(rgb=out.rgb, conf_logit=pts.conf_logit)
+            if "ist" in trainables["points"]:
+                inter["ist"] = pts.ist
             return inter, (out, aux.valid, pts)
 
         def loss_part(inter, fixed):  # the float inputs -> the loss terms (cheap; no render)
             out, valid, pts = fixed
-            aux = SegmentAux(valid=valid, **{k: v for k, v in inter.items() if k not in ("rgb", "conf_logit")})
-            return loss_terms(cfg.loss, out.replace(rgb=inter["rgb"]), aux, target,
-                              pts.replace(conf_logit=inter["conf_logit"]))
+            aux = SegmentAux(valid=valid, **{k: v for k, v in inter.items() if k not in ("rgb", "conf_logit", "ist")})
+            pts = pts.replace(conf_logit=inter["conf_logit"], **({"ist": inter["ist"]} if "ist" in inter else {}))
+            return loss_terms(cfg.loss, out.replace(rgb=inter["rgb"]), aux, target, pts)
 
         trainables = state.trainables
         inter, render_vjp, fixed = jax.vjp(render_part, trainables, has_aux=True)

@@ -1,0 +1,130 @@
+"""Editing a trained model and fine-tuning the result.
+
+* :func:`edit_model`: a trained model (:class:`~ne_jax.train.loop.TrainedModel`) plus an edit gives an
+  edited model: the same colour model and per-point features, the edited cloud (positions, deletions,
+  normals, IST) and the ``ist`` effect declared. Written to a run directory of its own (``config.json``,
+  ``checkpoints/``, ``metrics.json`` with the edit's report), so every command that reads a run
+  (``ne-jax eval``, ``render``, ``export``, ``finetune``) reads an edited model too.
+* :func:`finetune`: train an edited model on the edited scene's training views for a few epochs with
+  the same loop as training (:func:`~ne_jax.train.loop.train`), optionally with trainable ISTs and
+  point-cloud rounds (the paper: one warm-up epoch, then rounds for up to five epochs).
+* :func:`benchmark_edit`: a benchmark edit by name, looked up from the scene the model was trained on.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ne_jax.atomic import atomic_directory, atomic_write_text
+from ne_jax.data.synthetic import SCENES, get_scene
+from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
+from ne_jax.edit.deformations import Edit
+from ne_jax.edit.targets import EditError, EditSource
+from ne_jax.render.renderer import PointScene
+from ne_jax.train.checkpoint import config_to_json, save_checkpoint
+from ne_jax.train.loop import (CHECKPOINT_DIR, CONFIG_FILE, METRICS_FILE, RunConfig, StartFrom, TrainedModel,
+                               TrainResult, train)
+
+
+def _scene_meta(scene_dir: Path | None) -> dict:
+    if scene_dir is None or not (Path(scene_dir) / "scene.json").is_file():
+        return {}
+    return json.loads((Path(scene_dir) / "scene.json").read_text(encoding="utf-8"))
+
+
+def benchmark_edit(scene_dir: str | Path | None, name: str) -> tuple[Edit, Path | None]:
+    """The benchmark edit ``name`` of the scene in ``scene_dir`` (its ``scene.json`` names the scene)
+    and the folder of the edited scene's ground truth (``None`` when not generated).
+
+    Raises:
+        EditError: ``scene_dir`` is not a benchmark scene, or the scene has no edit ``name`` (the
+            message lists the edits it has).
+    """
+    meta = _scene_meta(scene_dir)
+    if meta.get("scene") not in SCENES:
+        raise EditError(f"edit {name!r}: expected the model's scene folder to be a benchmark scene (scene.json "
+                        f"naming one of {sorted(SCENES)}), found {scene_dir} ({meta.get('scene', 'no scene.json')})")
+    scene = get_scene(meta["scene"])
+    if name not in scene.edits:
+        raise EditError(f"edit {name!r}: expected one of the edits of scene {scene.name!r}: {sorted(scene.edits)}")
+    truth = Path(scene_dir) / "edits" / name
+    return scene.edits[name], truth if (truth / "transforms_test.json").is_file() else None
+
+
+def resolve_edit(model: TrainedModel, edit: EditSource | str) -> tuple[EditSource, str, Path | None]:
+    """``(edit, label, ground-truth folder)`` for an edit given as a benchmark name, a file or an
+    :class:`Edit`: a string that is not an existing file is looked up among the benchmark's edits."""
+    if isinstance(edit, str) and not Path(edit).exists() and not edit.lower().endswith((".npy", ".ply")):
+        fn, truth = benchmark_edit(model.scene_dir, edit)
+        return fn, edit, truth
+    label = edit.name if isinstance(edit, Edit) else str(edit)
+    return edit, label, None
+
+
+def edit_model(model: TrainedModel, edit: EditSource | str, out_dir: str | Path | None = None, *,
+               ist: bool = True, cfg: EditConfig = EditConfig(), scene_dir: str | Path | None = None
+               ) -> tuple[TrainedModel, dict]:
+    """Apply ``edit`` to ``model``'s cloud. Returns ``(edited model, report)``.
+
+    ``ist=False`` declares no IST effect (the "without IST" variant; the IST is still computed and
+    stored, so the same edited directory can be rendered either way). ``scene_dir``: the edited
+    scene's ground truth (found automatically for benchmark edits by name), recorded for ``eval`` and
+    ``finetune``. With ``out_dir`` the edited model is written there as a run directory (atomically).
+    """
+    fn, label, truth = resolve_edit(model, edit)
+    truth = Path(scene_dir) if scene_dir is not None else truth
+    report: dict = {}
+    points = apply_edit(model.state.point_state(model.scene.points), fn, cfg, report=report)
+    run = model.run.replace(render=edited_render_config(model.run.render, ist))
+    state = model.state.with_points(points, np.zeros(points.capacity, bool))
+    edited = TrainedModel(run=run, state=state, scene=PointScene.build(points, run.render), scene_dir=truth,
+                          meta=dict(model.meta))
+    report = {"edit": label, "ist": ist, **report}
+    if out_dir is not None:
+        metrics = {"scene_dir": str(Path(truth).resolve()) if truth is not None else None, "edit": report,
+                   "source": {"scene_dir": str(model.scene_dir) if model.scene_dir else None,
+                              "step": int(model.state.step)}, "epochs": []}
+        with atomic_directory(out_dir) as tmp:
+            atomic_write_text(tmp / CONFIG_FILE, json.dumps(config_to_json(run), indent=2) + "\n")
+            atomic_write_text(tmp / METRICS_FILE, json.dumps(metrics, indent=2) + "\n")
+            save_checkpoint(tmp / CHECKPOINT_DIR, state, points, run.train, run.render,
+                            extra={"history": [], "edit": report}, keep=1)
+    return edited, report
+
+
+def finetune_config(run: RunConfig, epochs: int = 1, *, steps_per_epoch: int | None = None,
+                    train_ist: bool = False, optimise_points: bool = False) -> RunConfig:
+    """The run config of fine-tuning an edited model for ``epochs`` epochs: a fresh cosine schedule
+    over them, trainable ISTs (kept orthogonal by ``ist_orthogonality = 1``) when ``train_ist``, and
+    point-cloud rounds after epochs ``1 .. min(5, epochs - 1)`` when ``optimise_points`` (paper:
+    one warm-up epoch, then rounds)."""
+    loss = run.train.loss.replace(ist_orthogonality=1.0 if train_ist else 0.0)
+    run = run.replace(train=run.train.replace(train_ist=train_ist, loss=loss),
+                      point_rounds=(1, min(5, epochs - 1)) if optimise_points else (1, 0))
+    return run.with_schedule(epochs, steps_per_epoch).replace(name=f"{run.name}-finetune")
+
+
+def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene_dir: str | Path | None = None,
+             steps_per_epoch: int | None = None, train_ist: bool = False, optimise_points: bool = False,
+             resume: bool = True, progress: bool = True, log=print) -> TrainResult:
+    """Fine-tune an edited ``model`` on the training views of ``scene_dir`` (default: the edited
+    scene recorded with the model) into ``run_dir``; see :func:`finetune_config`.
+
+    Raises:
+        EditError: no edited scene to fine-tune on.
+    """
+    scene_dir = scene_dir if scene_dir is not None else model.scene_dir
+    if scene_dir is None:
+        raise EditError("finetune: expected the edited scene's folder (training views of the edited scene), "
+                        "found none recorded with the model; pass scene_dir / --scene")
+    run = finetune_config(model.run, epochs, steps_per_epoch=steps_per_epoch, train_ist=train_ist,
+                          optimise_points=optimise_points)
+    start = StartFrom(params=model.state.params, points=model.state.point_state(model.scene.points),
+                      note={"from_step": int(model.state.step), "edit": model.meta.get("extra", {}).get("edit")})
+    return train(run, scene_dir, run_dir, resume=resume, progress=progress, log=log, start=start)
+
+
+__all__ = ["benchmark_edit", "edit_model", "finetune", "finetune_config", "resolve_edit"]
