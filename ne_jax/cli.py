@@ -8,11 +8,15 @@ Sub-commands:
   eval            PSNR and SSIM of a trained run on a split (per view and mean), with the images
   render          render a trained run's split views to PNGs, or a camera orbit to MP4/GIF
   export          write a trained run's point cloud (normals, confidences, colours) to PLY
+  edit            move/delete a trained run's points (a benchmark edit by name, or a .npy/.ply file)
+                  into an edited model that renders zero-shot (evaluated on the edit's ground truth)
+  finetune        fine-tune an edited model on the edited scene's training views
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -142,6 +146,46 @@ def _cmd_export(args) -> int:
     return 0
 
 
+def _cmd_edit(args) -> int:
+    from ne_jax.edit.apply import EditConfig
+    from ne_jax.edit.model import edit_model
+
+    model, scene_dir = _load(args)
+    model = dataclasses.replace(model, scene_dir=scene_dir)
+    out = Path(args.out)
+    edited, report = edit_model(model, args.edit, out, ist=not args.no_ist, cfg=EditConfig(), scene_dir=args.edited_scene)
+    print(f"edit {report['edit']!r}: {report['moved']} points moved, {report['deleted']} deleted, {report['alive']} alive; "
+          f"IST from {report['good']} frames, {report['filled']} filled from neighbours, {report['identity']} identity "
+          f"({report['seconds']:.1f} s) -> {out}")
+    if edited.scene_dir is not None and not args.no_eval:
+        run = edited.run
+        ev = _evaluate(run, edited.state.params, edited.scene, edited.scene_dir, "test", out / "eval_test",
+                       run.background)
+        print("zero-shot ", end="")
+        _print_eval(ev, out / "eval_test")
+    elif edited.scene_dir is None:
+        print("no ground truth of the edited scene (pass --edited-scene DIR to evaluate and fine-tune)")
+    return 0
+
+
+def _cmd_finetune(args) -> int:
+    from ne_jax.edit.model import finetune
+
+    model, scene_dir = _load(args)
+    scene_dir = _need_scene(scene_dir, args.run)
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    result = finetune(model, out, args.epochs, scene_dir=scene_dir, steps_per_epoch=args.steps_per_epoch,
+                      train_ist=args.train_ist, optimise_points=args.optimise_points, resume=not args.restart,
+                      progress=not args.quiet)
+    print(f"fine-tuned {result.run.total_steps} steps in {time.perf_counter() - t0:.1f} s -> {out}")
+    if not args.no_eval:
+        ev = _evaluate(result.run, result.state.params, result.scene, scene_dir, "test", out / "eval_test",
+                       result.run.background, progress=not args.quiet)
+        _print_eval(ev, out / "eval_test")
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from ne_jax.data.benchmark import generate_benchmark
     from ne_jax.eval import orbit_cameras_for, render_views, write_video
@@ -241,6 +285,29 @@ def build_parser() -> argparse.ArgumentParser:
     ex = run_parser("export", "write a trained run's point cloud to PLY")
     ex.add_argument("--out", required=True, help="the .ply file to write")
     ex.set_defaults(func=_cmd_export)
+
+    ed = run_parser("edit", "edit a trained run's point cloud into an edited model")
+    ed.add_argument("--edit", required=True, metavar="NAME|FILE",
+                    help="a benchmark edit of the run's scene by name (e.g. bend), or an edit file: .npy with one "
+                         "row per alive point (NaN rows delete) or .ply with an index property (`ne-jax export`)")
+    ed.add_argument("--out", required=True, help="the edited model's run directory")
+    ed.add_argument("--no-ist", action="store_true", help="render without the IST (the 'without IST' variant)")
+    ed.add_argument("--edited-scene", default=None,
+                    help="ground truth of the edited scene (default: the benchmark's, for a named edit)")
+    ed.add_argument("--no-eval", action="store_true", help="skip the zero-shot evaluation")
+    ed.set_defaults(func=_cmd_edit)
+
+    ft = run_parser("finetune", "fine-tune an edited model on the edited scene")
+    ft.add_argument("--out", required=True, help="run directory of the fine-tuning")
+    ft.add_argument("--epochs", type=int, default=1)
+    ft.add_argument("--steps-per-epoch", type=int, default=None, help="default: the model's preset")
+    ft.add_argument("--train-ist", action="store_true", help="make the ISTs trainable (kept orthogonal by a loss)")
+    ft.add_argument("--optimise-points", action="store_true",
+                    help="point-cloud rounds after epochs 1..min(5, epochs-1) (paper: warm-up, then rounds)")
+    ft.add_argument("--restart", action="store_true", help="ignore existing checkpoints in --out")
+    ft.add_argument("--no-eval", action="store_true", help="skip evaluating the test views")
+    ft.add_argument("--quiet", action="store_true", help="no progress bars")
+    ft.set_defaults(func=_cmd_finetune)
     return parser
 
 

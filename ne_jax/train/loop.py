@@ -216,13 +216,14 @@ def initial_points(run: RunConfig, cloud: InitialCloud, views: Views, key: jax.A
 @dataclasses.dataclass
 class TrainResult:
     """What :func:`train` returns: the final state, cloud and scene (tree built), the per-epoch
-    history (as in ``metrics.json``) and the run directory."""
+    history (as in ``metrics.json``), the run directory and the run's config."""
 
     state: TrainState
     scene: PointScene
     history: list
     run_dir: Path
     initial: dict
+    run: RunConfig | None = None
 
 
 @dataclasses.dataclass
@@ -414,7 +415,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                 break
     finally:
         bar.close()
-    return TrainResult(state=state, scene=state.scene(scene), history=history, run_dir=run_dir, initial=initial)
+    return TrainResult(state=state, scene=state.scene(scene), history=history, run_dir=run_dir, initial=initial,
+                       run=run)
 
 
 @dataclasses.dataclass
