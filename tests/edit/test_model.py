@@ -1,0 +1,111 @@
+"""Editing a trained model end to end: edited run directories, zero-shot rendering, fine-tuning
+(with and without trainable ISTs) and the command line, on a tiny generated scene."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from ne_jax.cli import main
+from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+from ne_jax.data.nerf_synthetic import load_split
+from ne_jax.edit.model import edit_model, finetune
+from ne_jax.edit.targets import EditError
+from ne_jax.eval import evaluate_split
+from ne_jax.geometry.kdtree import KDTreeConfig
+from ne_jax.pointcloud.optimise import PointOptConfig
+from ne_jax.render.quadrature import QuadratureConfig
+from ne_jax.render.renderer import RenderConfig
+from ne_jax.train import SamplerConfig, TrainConfig
+from ne_jax.train.loop import InitConfig, RunConfig, load_trained, train
+
+MINI = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
+                       detail=0.4, surface_samples=2000)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    generate_scene("glossy", MINI, root, seed=0)
+    return root / "glossy"
+
+
+@pytest.fixture(scope="module")
+def trained(scene_dir, tmp_path_factory):
+    render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24), quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
+    init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
+    run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),
+                    init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
+                    epochs=1, steps_per_epoch=4, point_rounds=(1, 0), log_every=2).with_schedule()
+    out = tmp_path_factory.mktemp("run") / "trained"
+    train(run, scene_dir, out, progress=False, log=lambda s: None)
+    return out
+
+
+def _psnr(model):
+    split = load_split(model.scene_dir, "test")
+    report, _ = evaluate_split(model.run.render, model.state.params, model.scene, split, model.run.background,
+                               model.run.sampler.near, model.run.sampler.far, progress=False)
+    return report["psnr"]
+
+
+def test_edit_by_name_writes_a_run_directory_that_renders_zero_shot(trained, scene_dir, tmp_path):
+    model = load_trained(trained)
+    edited, report = edit_model(model, "bend", tmp_path / "edited")
+    assert report["moved"] > 0 and report["good"] > 0.9 * report["alive"]
+    assert edited.run.render.shading.effects.ist and edited.scene_dir == scene_dir / "edits" / "bend"
+    back = load_trained(tmp_path / "edited")  # every run command reads it
+    np.testing.assert_array_equal(np.asarray(back.scene.points.xyz), np.asarray(edited.scene.points.xyz))
+    np.testing.assert_array_equal(np.asarray(back.scene.points.ist), np.asarray(edited.scene.points.ist))
+    assert back.scene_dir == (scene_dir / "edits" / "bend").resolve()
+    # the colour model is untouched and the edited model renders finite images of the edited scene
+    for a, b in zip(np.asarray(model.state.params["shader"]["density"]["kernel"]).ravel(),
+                    np.asarray(back.state.params["shader"]["density"]["kernel"]).ravel()):
+        assert a == b
+    assert np.isfinite(_psnr(back))
+    meta = json.loads((tmp_path / "edited" / "metrics.json").read_text())
+    assert meta["edit"]["edit"] == "bend"
+
+
+def test_unknown_edit_name_lists_the_scenes_edits(trained, tmp_path, capsys):
+    assert main(["edit", str(trained), "--edit", "fold", "--out", str(tmp_path / "e")]) == 2
+    err = capsys.readouterr().err
+    assert "'fold'" in err and "bend" in err and "tilt_ring" in err
+    assert not (tmp_path / "e").exists()  # nothing written
+
+
+def test_edit_of_a_non_benchmark_scene_by_name_is_refused(trained, tmp_path):
+    model = dataclasses.replace(load_trained(trained), scene_dir=tmp_path)
+    with pytest.raises(EditError, match="expected the model's scene folder to be a benchmark scene"):
+        edit_model(model, "bend")
+
+
+@pytest.mark.parametrize("train_ist", [False, True])
+def test_finetune_trains_features_and_optionally_the_ist(trained, tmp_path, train_ist):
+    edited, _ = edit_model(load_trained(trained), "bend", tmp_path / "edited")
+    result = finetune(edited, tmp_path / "ft", 1, steps_per_epoch=3, train_ist=train_ist, progress=False,
+                      log=lambda s: None)
+    before, after = edited.scene.points, result.scene.points
+    assert not np.array_equal(np.asarray(before.feature), np.asarray(after.feature))
+    ist_changed = not np.array_equal(np.asarray(before.ist), np.asarray(after.ist))
+    assert ist_changed == train_ist
+    record = result.history[-1]
+    assert ("loss/ist_orthogonality" in record) == train_ist and record["skipped"] == 0
+    if train_ist:  # kept orthogonal
+        ist = np.asarray(after.ist)[np.asarray(after.alive)]
+        gram = np.einsum("cji,cjk->cik", ist, ist)
+        assert np.abs(gram - np.eye(3)).max() < 0.05
+    assert load_trained(tmp_path / "ft").run.train.train_ist == train_ist
+
+
+def test_cli_edit_and_finetune(trained, tmp_path, capsys):
+    assert main(["edit", str(trained), "--edit", "cut", "--out", str(tmp_path / "e")]) == 0
+    out = capsys.readouterr().out
+    assert "edit 'cut'" in out and "zero-shot test: PSNR" in out
+    assert main(["finetune", str(tmp_path / "e"), "--out", str(tmp_path / "f"), "--steps-per-epoch", "2",
+                 "--quiet"]) == 0
+    assert "test: PSNR" in capsys.readouterr().out
+    assert (tmp_path / "f" / "eval_test" / "metrics.json").is_file()
