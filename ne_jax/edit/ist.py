@@ -48,7 +48,7 @@ import numpy as np
 from flax import struct
 from scipy.spatial import cKDTree
 
-from ne_jax.numerics import safe_div
+from ne_jax.numerics import safe_div, safe_sqrt
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,8 +126,8 @@ def nearest_rotation(m: jax.Array, iters: int = 12) -> jax.Array:
     x = m
     for _ in range(int(iters)):
         inv_t, _ = _inv_transpose3(x)
-        norm_x = jnp.sqrt(jnp.sum(x * x, axis=(-2, -1)))
-        norm_inv = jnp.sqrt(jnp.sum(inv_t * inv_t, axis=(-2, -1)))
+        norm_x = safe_sqrt(jnp.sum(x * x, axis=(-2, -1)))
+        norm_inv = safe_sqrt(jnp.sum(inv_t * inv_t, axis=(-2, -1)))
         g = jnp.sqrt(safe_div(norm_inv, norm_x, 1.0))
         g = jnp.where(g > 0, g, 1.0)[..., None, None]
         x = 0.5 * (g * x + inv_t / g)
@@ -205,20 +205,25 @@ def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence) -
 # ------------------------------------------------------------------------------ the transform (jit)
 
 
-def frame_transforms(xyz0, normal0, xyz1, normal1, pair, iters: int = 12) -> tuple[jax.Array, jax.Array, jax.Array]:
+def frame_transforms(xyz0, normal0, xyz1, normal1, pair, use, iters: int = 12) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Per-slot frame rotations from the pairs: ``(ist [C, 3, 3], sign [C], det_b [C])``.
 
     ``sign`` orients the edited normal (``s n'`` keeps the frame's handedness); ``det_b`` is the
-    edited frame's determinant (0: singular, the slot must not use its own frame)."""
+    edited frame's determinant (0: singular, the slot must not use its own frame). Slots outside
+    ``use [C]`` compute on identity frames (so their gradients stay finite) and return the identity."""
     a, b = pair[:, 0], pair[:, 1]
     u_a, u_b = _tangent(xyz0[a] - xyz0, normal0), _tangent(xyz0[b] - xyz0, normal0)
     v_a, v_b = _tangent(xyz1[a] - xyz1, normal1), _tangent(xyz1[b] - xyz1, normal1)
     det_a = jnp.sum(jnp.cross(u_a, u_b) * normal0, axis=-1)
     det_v = jnp.sum(jnp.cross(v_a, v_b) * normal1, axis=-1)
     sign = jnp.where(det_a * det_v < 0, -1.0, 1.0).astype(normal1.dtype)
-    cols_a = jnp.stack([u_a, u_b, normal0], axis=-1)  # columns
-    cols_b = jnp.stack([v_a, v_b, sign[:, None] * normal1], axis=-1)
-    inv_bt, det_b = _inv_transpose3(cols_b)
+    eye = jnp.eye(3, dtype=xyz1.dtype)
+    det_b = det_v * sign  # det [v_a, v_b, s n'] (columns)
+    use = use & (det_b != 0)
+    pick = lambda m: jnp.where(use[:, None, None], m, eye)  # noqa: E731  (double where: finite gradients)
+    cols_a = pick(jnp.stack([u_a, u_b, normal0], axis=-1))  # columns
+    cols_b = pick(jnp.stack([v_a, v_b, sign[:, None] * normal1], axis=-1))
+    inv_bt, _ = _inv_transpose3(cols_b)
     m = cols_a @ jnp.swapaxes(inv_bt, -1, -2)  # A B^-1
     return nearest_rotation(m, iters), sign, det_b
 
@@ -229,7 +234,9 @@ def _average(ist: jax.Array, neighbors, weight, source: jax.Array, iters: int):
     w = weight * source[neighbors]
     total = jnp.sum(w, axis=1)
     mean = jnp.einsum("ck,ckij->cij", w, ist[neighbors]) / jnp.where(total > 0, total, 1.0)[:, None, None]
-    return nearest_rotation(mean, iters), (total > 0) & (_det3(mean) > 0.1)
+    ok = (total > 0) & (_det3(mean) > 0.1)
+    mean = jnp.where(ok[:, None, None], mean, jnp.eye(3, dtype=mean.dtype))  # finite gradients where not used
+    return nearest_rotation(mean, iters), ok
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
@@ -242,8 +249,8 @@ def ist_from_plan(cfg: ISTConfig, plan: ISTPlan, xyz0, normal0, xyz1, normal1) -
     ``identity`` alive points left at the identity."""
     dtype = xyz1.dtype
     eye = jnp.eye(3, dtype=dtype)
-    ist, sign, det_b = frame_transforms(xyz0, normal0, xyz1, normal1, plan.pair, cfg.polar_iters)
-    good = plan.good & (jnp.abs(det_b) > 0)
+    ist, sign, det_b = frame_transforms(xyz0, normal0, xyz1, normal1, plan.pair, plan.good, cfg.polar_iters)
+    good = plan.good & (det_b != 0)
     ist = jnp.where(good[:, None, None], ist, eye)
     done = good
     for _ in range(int(cfg.fill_passes)):

@@ -28,6 +28,7 @@ from ne_jax.data.png import write_image
 from ne_jax.data.rays import Camera
 from ne_jax.data.synthetic import CAMERA_RADIUS, orbit_cameras
 from ne_jax.eval.metrics import psnr, ssim
+from ne_jax.render.quadrature import at_test_time
 from ne_jax.render.renderer import PointScene, RenderConfig, render_image
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -36,13 +37,19 @@ _psnr = jax.jit(psnr)
 _ssim = jax.jit(ssim)
 
 
+def _ray_image(cfg, params, scene, camera, background, near, far):
+    cfg = cfg.replace(quadrature=at_test_time(cfg.quadrature))  # a stochastic-rule model renders un-jittered
+    return render_image(cfg, params, scene, camera, background, near, far, progress=False)
+
+
 def _render_all(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Sequence[Camera], background,
-                near: float, far: float, progress: bool, desc: str) -> tuple[np.ndarray, np.ndarray]:
+                near: float, far: float, progress: bool, desc: str, image_fn=None) -> tuple[np.ndarray, np.ndarray]:
     """Images ``[N, H, W, 3]`` float32 and the segments each view lost ``[N]`` (overflow + dropped)."""
     bg = parse_background(background)
+    image_fn = _ray_image if image_fn is None else image_fn
     images, lost = [], []
     for cam in tqdm(cameras, desc=desc, unit="view", disable=not progress):
-        out = render_image(cfg, params, scene, cam, bg, near, far, progress=False)
+        out = image_fn(cfg, params, scene, cam, bg, near, far)
         rgb, n_lost = jax.device_get((out.rgb, out.overflow.sum() + out.dropped.sum()))
         images.append(np.asarray(rgb, np.float32))
         lost.append(int(n_lost))
@@ -52,17 +59,22 @@ def _render_all(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Seq
 
 
 def render_views(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Sequence[Camera], background,
-                 near: float, far: float, progress: bool = True) -> np.ndarray:
+                 near: float, far: float, progress: bool = True, image_fn=None) -> np.ndarray:
     """Render each of ``cameras`` (all of one size) on ``background`` (anything
     :func:`~ne_jax.data.nerf_synthetic.parse_background` accepts) -> ``[N, H, W, 3]`` float32, with a
     progress bar over the views. Segments lost to capacities are reported by :func:`evaluate_split`;
     here they are not checked."""
-    return _render_all(cfg, params, scene, cameras, background, near, far, progress, "render views")[0]
+    return _render_all(cfg, params, scene, cameras, background, near, far, progress, "render views", image_fn)[0]
 
 
 def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: SceneSplit, background,
-                   near: float, far: float, progress: bool = True) -> tuple[dict, np.ndarray]:
+                   near: float, far: float, progress: bool = True, image_fn=None) -> tuple[dict, np.ndarray]:
     """Render every view of ``split`` at full resolution and score it.
+
+    ``image_fn``: another image renderer with :func:`~ne_jax.render.renderer.render_image`'s
+    arguments ``(cfg, params, scene, camera, background, near, far) -> RenderOut`` (e.g. Naive
+    Plotting, :func:`~ne_jax.render.naive.naive_plot_image`); default the ray renderer (a model
+    trained with the ``"stochastic"`` rule is rendered with :func:`~ne_jax.render.quadrature.at_test_time`).
 
     Targets are the split's RGBA images composited on ``background`` with
     :func:`~ne_jax.data.nerf_synthetic.composite`; the renderer gets the same background colour.
@@ -78,7 +90,7 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
     them (0 for a complete render; see :func:`~ne_jax.render.renderer.render_chunked`)."""
     bg = parse_background(background)
     cameras = split.cameras()
-    images, lost = _render_all(cfg, params, scene, cameras, bg, near, far, progress, f"evaluate {split.name}")
+    images, lost = _render_all(cfg, params, scene, cameras, bg, near, far, progress, f"evaluate {split.name}", image_fn)
     targets = composite(split.images, bg).astype(np.float32)
     views = []
     for i in range(split.num_views):

@@ -39,7 +39,7 @@ from ne_jax.geometry.knn import interpolate, knn_neighbors
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import Views
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
-from ne_jax.render.quadrature import level_samples
+from ne_jax.render.quadrature import at_test_time, level_samples
 from ne_jax.render.renderer import PointScene, RenderConfig, values_needed, render_rays
 from ne_jax.render.shading import shade
 
@@ -201,6 +201,7 @@ def grow_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, sce
     """Scan ``rays`` (``[R]``, targets set) in chunks, select and add the new points.
     Returns ``(points, report)``; the report counts rays scanned, candidates found and points added,
     and whether the capacity was re-allocated."""
+    render_cfg = render_cfg.replace(quadrature=at_test_time(render_cfg.quadrature))  # no jitter in the scan
     n = rays.num_rays
     chunk = min(cfg.grow_chunk, n)
     pad = (-n) % chunk

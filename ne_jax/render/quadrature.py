@@ -204,6 +204,16 @@ class QuadratureConfig:
         return max(self.samples_per_level)
 
 
+def at_test_time(cfg: QuadratureConfig) -> QuadratureConfig:
+    """The rule a model is rendered with outside training: ``cfg`` itself for deterministic rules;
+    for ``"stochastic"`` the trapezoid rule on the same samples per level (evenly spaced samples,
+    equal inner weights: NeRF's un-jittered test-time sampling, the expectation of the stratified
+    draws up to the end points)."""
+    if cfg.rule != "stochastic":
+        return cfg
+    return dataclasses.replace(cfg, rule="trapezoid")
+
+
 @functools.cache
 def _level_table(rule: str, samples: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
     big = max(samples)

@@ -1,0 +1,176 @@
+"""The deformation benchmark (paper Table 1 layout): every scene x every edit x every variant,
+zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
+
+    python experiments/deform_benchmark.py --preset tiny --runs runs/deform          # main variants
+    python experiments/deform_benchmark.py --preset tiny --runs runs/deform --variants all
+    python experiments/deform_benchmark.py --scenes glossy --edits bend --no-finetune  # a quick look
+
+For each scene: the full model and every variant that needs its own model are trained with the
+preset's :class:`~ne_jax.train.loop.RunConfig` (cached in ``--runs``: a finished run is reused), then
+for each edit and variant: :func:`~ne_jax.edit.model.edit_model` (zero-shot, scored on the edited
+ground truth) and :func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` epochs on the edited
+scene's training views (scored again). Writes ``experiments/results/deform_benchmark_<preset>.json``
+and ``.md`` after every (scene, edit), and a figure grid ``deform_benchmark_<preset>.png`` (test view
+0: ground truth, then each variant zero-shot).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
+from ne_jax.data.benchmark import generate_benchmark, get_preset
+from ne_jax.data.nerf_synthetic import composite, load_split
+from ne_jax.data.png import encode_png
+from ne_jax.data.synthetic import SCENES, get_scene
+from ne_jax.edit.model import edit_model, finetune
+from ne_jax.edit.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
+from ne_jax.eval import evaluate_split
+from ne_jax.train.loop import TrainedModel, get_run_preset, load_trained, train
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def score(model: TrainedModel, variant, scene_dir: Path) -> tuple[dict, np.ndarray]:
+    split = load_split(scene_dir, "test")
+    run = model.run
+    report, images = evaluate_split(run.render, model.state.params, model.scene, split, run.background,
+                                    run.sampler.near, run.sampler.far, progress=False, image_fn=variant.image_fn())
+    return {"psnr": round(report["psnr"], 2), "ssim": round(report["ssim"], 4),
+            "lost_segments": report["lost_segments"]}, images[0]
+
+
+def trained_model(run, scene_dir: Path, run_dir: Path, log) -> TrainedModel:
+    t0 = time.perf_counter()
+    train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
+    log(f"  model {run.name}: {time.perf_counter() - t0:.0f} s (cached runs return at once)")
+    model = load_trained(run_dir)
+    return TrainedModel(run=model.run, state=model.state, scene=model.scene, scene_dir=scene_dir, meta=model.meta)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", default="tiny", choices=["tiny", "default"])
+    parser.add_argument("--root", default=None, help="an existing benchmark folder of the preset (default: generate in --runs)")
+    parser.add_argument("--runs", required=True, help="folder for models, edited models and fine-tuning runs (reused)")
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--edits", nargs="+", default=None, help="subset of edit names (default: every edit)")
+    parser.add_argument("--variants", nargs="+", default=list(MAIN_VARIANTS),
+                        help=f"variant names or 'all' (default: {' '.join(MAIN_VARIANTS)}); one of {sorted(VARIANTS)}")
+    parser.add_argument("--finetune-epochs", type=int, default=1)
+    parser.add_argument("--finetune-steps", type=int, default=None, help="steps per fine-tuning epoch (default: the preset's)")
+    parser.add_argument("--no-finetune", action="store_true")
+    args = parser.parse_args(argv)
+    names = list(VARIANTS) if args.variants == ["all"] else args.variants
+    variants = [get_variant(n) for n in names]
+
+    runs = Path(args.runs)
+    root = Path(args.root) if args.root else runs / "benchmark"
+    if not (root / args.scenes[0] / "scene.json").is_file():
+        generate_benchmark(root, get_preset(args.preset), args.scenes)
+    full = get_run_preset(args.preset)
+    tag = "" if set(names) == set(MAIN_VARIANTS) and len(args.scenes) == len(SCENES) else "_partial"
+    out_name = f"deform_benchmark_{args.preset}{tag}"
+    records, figure = [], {}
+    t_start = time.perf_counter()
+    for scene in args.scenes:
+        print(f"== {scene}", flush=True)
+        scene_dir = root / scene
+        models = {}
+        for v in variants:
+            run = variant_run(full, v)
+            if run.name not in models:
+                models[run.name] = trained_model(run, scene_dir, runs / scene / "models" / run.name, print)
+        edits = [e for e in get_scene(scene).edits if args.edits is None or e in args.edits]
+        for edit in edits:
+            truth = scene_dir / "edits" / edit
+            split = load_split(truth, "test")
+            figure[(scene, edit, "ground truth")] = composite(split.images[:1], full.background)[0]
+            finetuned = {}
+            for v in variants:
+                model = models[variant_run(full, v).name]
+                t0 = time.perf_counter()
+                edited, rep = edit_model(model, edit, ist=v.ist, scene_dir=truth)
+                zero, image = score(edited, v, truth)
+                figure[(scene, edit, v.label)] = image
+                rec = {"scene": scene, "edit": edit, "variant": v.name, "zero_shot": zero,
+                       "edit_report": {k: rep[k] for k in ("moved", "deleted", "good", "filled", "identity")},
+                       "zero_shot_seconds": round(time.perf_counter() - t0, 1)}
+                if not args.no_finetune:
+                    key = (model.run.name, v.ist)  # Naive Plotting plots the fine-tuned model without IST
+                    t0 = time.perf_counter()
+                    if key not in finetuned:
+                        ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}"
+                        result = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
+                                          progress=False, log=lambda s: None)
+                        finetuned[key] = TrainedModel(run=result.run, state=result.state, scene=result.scene,
+                                                      scene_dir=truth, meta={})
+                    rec["finetune"] = score(finetuned[key], v, truth)[0]
+                    rec["finetune_seconds"] = round(time.perf_counter() - t0, 1)
+                records.append(rec)
+                ft = rec.get("finetune", {}).get("psnr", float("nan"))
+                print(f"  {edit:>12} {v.name:>22}: zero-shot {zero['psnr']:.2f} dB, fine-tuned {ft:.2f} dB", flush=True)
+            write_results(out_name, args, full, records, variants, time.perf_counter() - t_start)
+            write_figure(out_name, figure, variants)
+    print((RESULTS / f"{out_name}.md").read_text())
+
+
+def write_results(out_name: str, args, full, records: list, variants, seconds: float) -> None:
+    report = {
+        "what": "edit each scene's trained models by every benchmark edit; PSNR/SSIM of the edited test views "
+                "zero-shot and after fine-tuning on the edited scene's training views",
+        "preset": args.preset, "finetune_epochs": 0 if args.no_finetune else args.finetune_epochs,
+        "finetune_steps_per_epoch": args.finetune_steps or full.steps_per_epoch,
+        "training": {"epochs": full.epochs, "steps_per_epoch": full.steps_per_epoch, "batch_size": full.sampler.batch_size},
+        "background": full.background, "seconds": round(seconds, 1), "records": records,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "command": "python experiments/deform_benchmark.py " + " ".join(
+            f"--{k.replace('_', '-')} {' '.join(v) if isinstance(v, list) else v}" for k, v in vars(args).items()
+            if v not in (None, False) and k not in ("runs", "root")) + " --runs DIR",
+    }
+    RESULTS.mkdir(exist_ok=True)
+    atomic_write_json(RESULTS / f"{out_name}.json", report)
+    columns = list(dict.fromkeys((r["scene"], r["edit"]) for r in records))
+    lines = [f"Deformation benchmark, preset `{args.preset}` ({full.epochs} x {full.steps_per_epoch} training steps; "
+             f"fine-tuning {report['finetune_epochs']} epoch(s) x {report['finetune_steps_per_epoch']} steps). "
+             f"PSNR (dB) on the edited scenes' test views, background {full.background}. Re-run: `{report['command']}`.", ""]
+    for phase, title in (("zero_shot", "Zero-shot"), ("finetune", "Fine-tuned")):
+        if not any(phase in r for r in records):
+            continue
+        lines += [f"**{title}**", "", "| variant | " + " | ".join(f"{s}/{e}" for s, e in columns) + " | mean |",
+                  "|---|" + "---:|" * (len(columns) + 1)]
+        for v in variants:
+            vals = [next((r[phase]["psnr"] for r in records if (r["scene"], r["edit"]) == c and r["variant"] == v.name
+                          and phase in r), None) for c in columns]
+            got = [x for x in vals if x is not None]
+            cells = ["" if x is None else f"{x:.2f}" for x in vals]
+            lines.append(f"| {v.label} | " + " | ".join(cells) + f" | {np.mean(got):.2f} |" if got else "")
+        lines.append("")
+    atomic_write_text(RESULTS / f"{out_name}.md", "\n".join(lines))
+
+
+def write_figure(out_name: str, figure: dict, variants) -> None:
+    rows = list(dict.fromkeys((s, e) for s, e, _ in figure))
+    cols = ["ground truth"] + [v.label for v in variants]
+    h, w = next(iter(figure.values())).shape[:2]
+    pad = 2
+    grid = np.ones((len(rows) * (h + pad), len(cols) * (w + pad), 3), np.float32)
+    for i, (s, e) in enumerate(rows):
+        for j, c in enumerate(cols):
+            img = figure.get((s, e, c))
+            if img is not None:
+                grid[i * (h + pad):i * (h + pad) + h, j * (w + pad):j * (w + pad) + w] = np.clip(img, 0, 1)
+    atomic_write_bytes(RESULTS / f"{out_name}.png", encode_png((grid * 255 + 0.5).astype(np.uint8)))
+    atomic_write_text(RESULTS / f"{out_name}_figure.txt", "columns: " + ", ".join(cols) + "\nrows: "
+                      + ", ".join(f"{s}/{e}" for s, e in rows) + "\n")
+
+
+if __name__ == "__main__":
+    main()
