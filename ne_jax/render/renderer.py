@@ -20,12 +20,32 @@ interpolated — they are absent from the compiled program, not multiplied by ze
 
 ``render_image`` renders a camera in fixed-size chunks (the tail padded), so an image of any size
 compiles once per chunk size; the chunk size is the memory knob.
+
+The paper's ablation "- integration + traditional point sampling" is ``RenderConfig.integration =
+"samples"`` (default ``"segment"``: steps 3-6 above). The same segments, packing budget and ``s``
+samples per segment, but no integration: a segment with ``s`` samples is cut into ``s`` equal
+sub-intervals ``[t_lo + j L/s, t_lo + (j+1) L/s]`` and sample ``j`` sits at the midpoint of its
+sub-interval (deterministic rules; the quadrature rule's nodes and weights are not used) or
+uniformly inside it (``"stochastic"``: the same jitter, for the same key, as the segment mode's
+stratified positions). Every sample is shaded on its own — its own KNN-interpolated feature and,
+when the effects read them, point normal and IST, so its own density and colour — and composited as
+its own interval of length ``L / s`` (the union of a segment's sub-intervals is exactly the
+segment), front to back in ray order (segments by entry, samples by position). The depth map uses
+the samples' positions. A field that is constant along each segment renders exactly as in the
+segment mode (one interval of density ``sigma`` and length ``L`` is ``s`` intervals of length
+``L/s``); otherwise the two differ by what integrating before shading changes. Costs: ``s`` times the
+shading work, and the compositing arrays are ``[R, M * S]`` (``S = max(samples_per_level)``).
+``SegmentAux`` then holds one slot per sample, ``[R, M * S, ...]`` (padded sample slots of
+segments with ``s < S`` are invalid), which the training losses read unchanged: their sums over
+slots become sums over sub-intervals (the sparsity penalty is then on each sub-interval's optical
+thickness).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -36,11 +56,14 @@ from tqdm.auto import tqdm
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
-from ne_jax.geometry.knn import knn_integrate
+from ne_jax.geometry.knn import knn_integrate, knn_interpolate
 from ne_jax.geometry.points import PointState
 from ne_jax.render.composite import composite
-from ne_jax.render.quadrature import QuadratureConfig, level_samples
+from ne_jax.render.quadrature import QuadratureConfig, level_samples, positions_from_fractions
 from ne_jax.render.shading import Effects, ShadingConfig, background_color, shade
+
+INTEGRATIONS: tuple[str, ...] = ("segment", "samples")
+"""Values of :attr:`RenderConfig.integration`."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +92,16 @@ class RenderConfig:
     counted in ``RenderOut.overflow``; :func:`render_chunked` re-renders such a chunk with a doubled
     budget. ``None``: shade every slot (no packing)."""
 
+    integration: Literal["segment", "samples"] = "segment"
+    """``"segment"`` (paper): integrate the interpolated features over each segment with the
+    quadrature rule, shade once per segment. ``"samples"``: the paper's ablation "- integration +
+    traditional point sampling" — shade each of the segment's ``s`` samples on its own and composite
+    it as its own ``1/s`` sub-interval of the segment (see the module docstring)."""
+
     def __post_init__(self):
+        if self.integration not in INTEGRATIONS:
+            raise ValueError(
+                f"RenderConfig.integration: expected one of {INTEGRATIONS}, found {self.integration!r}")
         levels = self.tree.num_render_levels
         if len(self.quadrature.samples_per_level) < levels:
             raise ValueError(
@@ -160,7 +192,9 @@ def values_needed(points: PointState, effects: Effects) -> dict:
 @struct.dataclass
 class SegmentAux:
     """Per-segment quantities of a render, for training losses (``[R, M, ...]``, ``M`` the segment
-    slots per ray; zeros in slots without a rendered segment).
+    slots per ray; zeros in slots without a rendered segment). With ``integration="samples"`` a
+    slot is a sample's sub-interval instead: ``[R, M * S, ...]`` (``S`` the padded samples per
+    segment; slots ordered by segment, then sample), and "segment" below reads "sub-interval".
 
     Attributes:
         valid: ``[R, M]`` bool, the slot holds a rendered segment.
@@ -224,6 +258,8 @@ def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, back
         live = jnp.arange(budget) < jnp.sum(seg.valid)
         keep = flat(jnp.zeros_like(seg.valid)).at[jnp.where(live, slot, r * m)].set(True, mode="drop").reshape(r, m)
     ray = slot // m
+    if cfg.integration == "samples":
+        return _render_samples(cfg, params, scene, rays, background, key, aux, seg, keep, slot, live)
     sigma, rgb, normal, extra = _shade_segments(
         cfg, params, scene, rays.origin[ray], rays.direction[ray], flat(seg.t_lo)[slot], flat(seg.t_hi)[slot],
         flat(seg.node)[slot], (tree.depth - 1) - flat(seg.level)[slot], key, aux)
@@ -279,6 +315,92 @@ def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direct
                  "confidence": means["confidence"][..., 0],
                  "normal_moment": means["normal_moment"].reshape(-1, 3, 3)}
     return out.sigma, out.rgb, out.shading_normal, extra
+
+
+def sample_intervals(cfg: QuadratureConfig, t_lo: jax.Array, t_hi: jax.Array, level_index: jax.Array,
+                     key: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """Sample positions of the point-sampling mode (``integration="samples"``): ``(t [..., S], inside
+    [..., S])`` for segments ``[t_lo, t_hi]`` (``[...]``) of levels ``level_index`` (0 = bottom
+    rendering level, clipped as in :func:`~ne_jax.render.quadrature.level_samples`).
+
+    A segment with ``s`` samples owns ``s`` equal sub-intervals; sample ``j`` lies at fraction
+    ``(j + 1/2) / s`` (deterministic rules) or ``(j + U_j) / s``, ``U ~ Uniform[0, 1)`` from ``key``
+    (``"stochastic"``: the same draws, hence the same positions, as ``level_samples`` with that key).
+    Padded slots ``j >= s`` sit at ``t_hi`` with ``inside`` False."""
+    t_lo = jnp.asarray(t_lo)
+    t_hi = jnp.asarray(t_hi)
+    dtype = jnp.result_type(t_lo, t_hi)
+    samples = tuple(int(s) for s in cfg.samples_per_level)
+    idx = jnp.clip(jnp.asarray(level_index), 0, len(samples) - 1)
+    s = jnp.asarray(samples, dtype)[idx][..., None]
+    j = jnp.arange(cfg.max_samples, dtype=dtype)
+    if cfg.rule == "stochastic":
+        if key is None:
+            raise ValueError("the stochastic rule needs a PRNG key")
+        offset = jax.random.uniform(key, (*idx.shape, cfg.max_samples), dtype)
+    else:
+        offset = jnp.asarray(0.5, dtype)
+    inside = j < s
+    u = jnp.where(inside, (j + offset) / s, 1.0)
+    return positions_from_fractions(t_lo, t_hi, u), inside
+
+
+def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
+                    aux: bool, seg, keep, slot, live) -> tuple[RenderOut, SegmentAux | None]:
+    """The ``integration="samples"`` half of :func:`_render`, from the packed segments on: every
+    sample shaded on its own and composited as its own sub-interval (module docstring)."""
+    tree = scene.tree
+    r, m = seg.valid.shape
+    ns = cfg.quadrature.max_samples
+    flat = lambda a: a.reshape((r * m,) + a.shape[2:])  # noqa: E731
+    ray = slot // m
+    origin, direction = rays.origin[ray], rays.direction[ray]
+    t_lo, t_hi = flat(seg.t_lo)[slot], flat(seg.t_hi)[slot]
+    level_index = (tree.depth - 1) - flat(seg.level)[slot]
+    t, inside = sample_intervals(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
+    pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
+    effects = cfg.shading.effects
+    needed = values_needed(scene.points, effects)
+    if aux:
+        conf = scene.points.confidence
+        n = scene.points.normal
+        needed["confidence"] = conf[:, None]
+        needed["normal_moment"] = (conf[:, None, None] * n[:, :, None] * n[:, None, :]).reshape(-1, 9)
+    vals, _ = knn_interpolate(scene.points, scene.tree, pos, flat(seg.node)[slot], cfg.tree, cfg.exact_knn,
+                              needed)  # [B, S, ...]
+    view = jnp.broadcast_to(direction[:, None, :], pos.shape)
+    sh = shade(cfg.shading, params, vals["feature"], vals.get("normal"), view, vals.get("ist"))
+    samples = jnp.asarray(tuple(int(v) for v in cfg.quadrature.samples_per_level), t.dtype)
+    s_count = samples[jnp.clip(level_index, 0, samples.shape[0] - 1)]
+    sub_len = jnp.where(inside, ((t_hi - t_lo) / tree.spacing / s_count)[:, None], 0.0)  # [B, S]
+
+    def unpack(v):  # packed [B, S, ...] -> [R, M * S, ...], zeros in slots without a live segment
+        target = jnp.where(live, slot, r * m)
+        full = jnp.zeros((r * m,) + v.shape[1:], v.dtype).at[target].set(v, mode="drop")
+        return full.reshape((r, m * ns) + v.shape[2:])
+
+    ok = jnp.repeat(keep, ns, axis=1) & unpack(inside)  # [R, M * S]
+    mask = lambda v: jnp.where(ok.reshape(ok.shape + (1,) * (v.ndim - 2)), v, 0.0)  # noqa: E731
+    sigma_full = mask(unpack(sh.sigma))
+    lengths = mask(unpack(sub_len))
+    normal_full = None if sh.shading_normal is None else mask(unpack(sh.shading_normal))
+    bg = background_color(cfg.shading, params, rays.origin, rays.direction, background)
+    comp = composite(sigma_full, unpack(sh.rgb), lengths, ok, unpack(t), bg, normals=normal_full)
+    normal_map = comp.normal if comp.normal is not None else jnp.zeros_like(comp.rgb)
+    out = RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
+                    num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
+                    dropped=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32))
+    if not aux:
+        return out, None
+    zeros3 = jnp.zeros(ok.shape + (3,), comp.rgb.dtype)
+    seg_aux = SegmentAux(
+        valid=ok, weights=comp.weights, sigma=sigma_full, lengths=lengths,
+        pred_normal=mask(unpack(sh.pred_normal)),
+        shading_normal=zeros3 if normal_full is None else normal_full,
+        view_dir=jnp.where(ok[..., None], rays.direction[:, None, :], 0.0),
+        confidence=mask(unpack(vals["confidence"][..., 0])),
+        normal_moment=mask(unpack(vals["normal_moment"].reshape(vals["normal_moment"].shape[:2] + (3, 3)))))
+    return out, seg_aux
 
 
 @functools.partial(jax.jit, static_argnums=0)
