@@ -189,6 +189,17 @@ def values_needed(points: PointState, effects: Effects) -> dict:
     return values
 
 
+def _values_to_interpolate(points: PointState, effects: Effects, aux: bool) -> dict:
+    """:func:`values_needed`, plus what the training losses read (``aux``): the confidence ``[C, 1]``
+    and the confidence-weighted normal moment ``[C, 9]``."""
+    needed = values_needed(points, effects)
+    if aux:
+        conf, n = points.confidence, points.normal
+        needed["confidence"] = conf[:, None]
+        needed["normal_moment"] = (conf[:, None, None] * n[:, :, None] * n[:, None, :]).reshape(-1, 9)
+    return needed
+
+
 @struct.dataclass
 class SegmentAux:
     """Per-segment quantities of a render, for training losses (``[R, M, ...]``, ``M`` the segment
@@ -300,12 +311,7 @@ def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direct
     effects = cfg.shading.effects
     t, w = level_samples(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
     pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
-    needed = values_needed(scene.points, effects)
-    if aux:
-        conf = scene.points.confidence
-        n = scene.points.normal
-        needed["confidence"] = conf[:, None]
-        needed["normal_moment"] = (conf[:, None, None] * n[:, :, None] * n[:, None, :]).reshape(-1, 9)
+    needed = _values_to_interpolate(scene.points, effects, aux)
     # Interpolation and quadrature fused (both linear): segment means straight from the candidates.
     means = knn_integrate(scene.points, scene.tree, pos, node, w, needed, cfg.tree, cfg.exact_knn)
     out = shade(cfg.shading, params, means["feature"], means.get("normal"), direction, means.get("ist"))
@@ -360,12 +366,7 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
     t, inside = sample_intervals(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
     pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
     effects = cfg.shading.effects
-    needed = values_needed(scene.points, effects)
-    if aux:
-        conf = scene.points.confidence
-        n = scene.points.normal
-        needed["confidence"] = conf[:, None]
-        needed["normal_moment"] = (conf[:, None, None] * n[:, :, None] * n[:, None, :]).reshape(-1, 9)
+    needed = _values_to_interpolate(scene.points, effects, aux)
     vals, _ = knn_interpolate(scene.points, scene.tree, pos, flat(seg.node)[slot], cfg.tree, cfg.exact_knn,
                               needed)  # [B, S, ...]
     view = jnp.broadcast_to(direction[:, None, :], pos.shape)

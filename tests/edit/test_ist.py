@@ -11,6 +11,8 @@ from ne_jax.edit.deformations import bend_points, rotation_matrix
 from ne_jax.edit.ist import ISTConfig, compute_ist, ist_from_plan, nearest_rotation, plan_ist
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 
+from .reference import frame_map_polar
+
 UNORIENTED = NormalConfig(orient="none")
 R = np.asarray(rotation_matrix([1.0, 2.0, 3.0], 0.7), np.float64)
 
@@ -74,20 +76,6 @@ def test_linear_map_keeping_the_normal_gives_its_rotation_part(stretch):
     assert (sign == -1).all()
 
 
-def reference_frame_polar(x0, n0, x1, n1, pair):
-    """float64 numpy loops: polar factor of A B^-1 with handedness-oriented edited normal."""
-    out = np.zeros((len(x0), 3, 3))
-    for j, (a, b) in enumerate(pair):
-        t = lambda d, n: d - (d @ n) * n
-        ua, ub = t(x0[a] - x0[j], n0[j]), t(x0[b] - x0[j], n0[j])
-        va, vb = t(x1[a] - x1[j], n1[j]), t(x1[b] - x1[j], n1[j])
-        s = np.sign(np.cross(ua, ub) @ n0[j]) * np.sign(np.cross(va, vb) @ n1[j])
-        m = np.column_stack([ua, ub, n0[j]]) @ np.linalg.inv(np.column_stack([va, vb, s * n1[j]]))
-        u, _, vt = np.linalg.svd(m)
-        out[j] = u @ vt
-    return out
-
-
 def test_general_linear_map_matches_float64_reference():
     x0, n0 = plane(20)
     sym = np.array([[1.4, 0.3, 0.2], [0.3, 0.8, -0.25], [0.2, -0.25, 1.1]])  # SPD, normal not an eigenvector
@@ -97,7 +85,7 @@ def test_general_linear_map_matches_float64_reference():
     cfg = ISTConfig(smooth_iters=0)
     plan = plan_ist(cfg, x0, n0, x1, n1, np.ones(len(x0), bool), np.full(len(x0), 0.5))
     ist, _, _ = ist_of(x0, n0, x1, n1, cfg=cfg)
-    ref = reference_frame_polar(x0, n0, x1, n1, np.asarray(plan.pair))
+    ref = frame_map_polar(x0, n0, x1, n1, np.asarray(plan.pair))
     np.testing.assert_allclose(ist, ref, atol=2e-5)  # float32 solve + Newton vs float64 SVD
     # for a linear map the frame map does not depend on which two neighbours span the frame
     other = ISTConfig(smooth_iters=0, candidates=3)

@@ -19,6 +19,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from edit.reference import frame_map_polar
 from ne_jax.edit.apply import apply_edit
 from ne_jax.edit.deformations import Edit, rotation_matrix, twist_points
 from ne_jax.edit.ist import ISTConfig, ist_from_plan, plan_ist
@@ -38,20 +39,6 @@ def normals_of(xyz, alive, zero_fraction=0.0, seed=0):
     if zero_fraction:
         n[idx[np.random.default_rng(seed).random(idx.size) < zero_fraction]] = 0.0
     return n
-
-
-def reference(x0, n0, x1, n1, pair, good):
-    out = np.tile(np.eye(3), (len(x0), 1, 1))
-    for j in np.flatnonzero(good):
-        a, b = pair[j]
-        t = lambda d, n: d - (d @ n) * n
-        ua, ub = t(x0[a] - x0[j], n0[j]), t(x0[b] - x0[j], n0[j])
-        va, vb = t(x1[a] - x1[j], n1[j]), t(x1[b] - x1[j], n1[j])
-        s = np.sign(np.cross(ua, ub) @ n0[j]) * np.sign(np.cross(va, vb) @ n1[j])
-        m = np.column_stack([ua, ub, n0[j]]) @ np.linalg.inv(np.column_stack([va, vb, s * n1[j]]))
-        u, _, vt = np.linalg.svd(m)
-        out[j] = u @ vt
-    return out
 
 
 def run_ist(x0, n0, x1, n1, alive, conf):
@@ -88,7 +75,7 @@ def test_rigid_motion_on_hard_clouds(kind, scale):
     # the reference sees the same (dtype-rounded) inputs: a cluster 1e-3 wide at 1e-4 keeps only
     # ~1e-4 relative precision in float32 coordinates, which no algorithm can recover
     x0, n0, x1, n1 = (np.asarray(a, DTYPE).astype(np.float64) for a in (x0, n0, x1, n1))
-    ref = reference(x0, n0, x1, n1, np.asarray(plan.pair), good)
+    ref = frame_map_polar(x0, n0, x1, n1, np.asarray(plan.pair), good)
     np.testing.assert_allclose(ist[good], ref[good], atol=MATCH)
     # ... and the exact answer R^T within the precision the rounded coordinates allow
     spread = max(1.0, float(np.abs(x0[alive]).max() / scale / 1e-3) if kind == "clusters" else 1.0)
