@@ -163,11 +163,8 @@ def make_edit_loss(render_cfg: RenderConfig, deform: Deformation, edit_cfg: Edit
 
     ``mode``: how ``value_and_grad`` differentiates. ``"forward"`` (default): one JVP per scalar in
     ``theta`` (``jax.jvp`` vmapped over the basis), the cheap way for a few deformation parameters
-    (no reverse-mode residuals of the render are stored). ``"reverse"``: ``jax.value_and_grad``;
-    it needs every ``jnp.where``-masked branch of the IST to have a finite reverse-mode gradient
-    (``ist.nearest_rotation`` of the singular frames of dead or degenerate slots currently gives NaN
-    cotangents: see ``tests/edit/test_differentiable.py::test_reverse_mode_gradient_is_finite``).
-    Both give the same numbers where both are finite.
+    (no reverse-mode residuals of the render are stored). ``"reverse"``: ``jax.value_and_grad``
+    (the better choice for many parameters). Both give the same numbers (tested).
 
     ``boxes``: move the tree's boxes with the points (:func:`follow_boxes`; default). Off, positions
     reach the render only through the KNN weights inside the fixed voxels: the density stays where
