@@ -26,18 +26,23 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from ne_jax.atomic import atomic_write_json
 from ne_jax.data import synthetic as S
 from ne_jax.data.benchmark import generate_benchmark
 from ne_jax.data.nerf_synthetic import load_split, parse_background, split_rays
 from ne_jax.edit.apply import edited_render_config
-from ne_jax.edit.differentiable import bend_deformation, make_edit_loss, recover_parameter
+from ne_jax.edit.differentiable import (
+    bend_deformation,
+    make_edit_loss,
+    recover_parameter,
+)
 from ne_jax.train.loop import RunConfig, fit_segment_budget, load_trained, train
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # The glossy scene's bend (ne_jax/data/synthetic.py make_glossy): everything but the angle is known.
-BEND = dict(center=(0.0, 0.0, -0.8), along=(0.0, 0.0, 1.0), toward=(1.0, 0.0, 0.0), length=1.6)
+BEND = {"center": (0.0, 0.0, -0.8), "along": (0.0, 0.0, 1.0), "toward": (1.0, 0.0, 0.0), "length": 1.6}
 
 
 def main(argv=None) -> dict:
@@ -50,12 +55,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--start-deg", type=float, default=None, help="starting angle (default: half the true angle)")
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--lr", type=float, default=0.04, help="Adam learning rate (radians per step)")
+    ap.add_argument("--schedule", choices=["cosine", "constant"], default="constant",
+                    help="learning-rate schedule (cosine: decays to 10%% over the steps)")
     ap.add_argument("--rebuild-every", type=int, default=4)
     ap.add_argument("--views", type=int, default=6, help="train views of the edited scene used")
     ap.add_argument("--rays-per-view", type=int, default=1024)
     ap.add_argument("--normals", choices=["deform", "plan"], default="deform")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=str(RESULTS / "recover_bend"))
+    ap.add_argument("--out", default=str(RESULTS / "recover_bend"), help="output path without extension")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
 
@@ -118,10 +125,12 @@ def main(argv=None) -> dict:
     print(f"true angle {true_deg:g} deg, start {np.rad2deg(start):g} deg, {rays.num_rays} rays from views "
           f"{views.tolist()}, {args.steps} Adam steps (lr {args.lr}), rebuild every {args.rebuild_every}")
     t0 = time.perf_counter()
-    theta, traj = recover_parameter(problem, params, points, start, rays, targets, background, steps=args.steps,
-                                    learning_rate=args.lr, rebuild_every=args.rebuild_every, callback=report)
+    lr = optax.cosine_decay_schedule(args.lr, args.steps, alpha=0.1) if args.schedule == "cosine" else args.lr
+    _, traj = recover_parameter(problem, params, points, start, rays, targets, background, steps=args.steps,
+                                    optimizer=optax.adam(lr), rebuild_every=args.rebuild_every, callback=report)
     descent_seconds = time.perf_counter() - t0
     # the loss at the true angle under its own topology, for reference
+    problem = traj.problem
     topo_true = problem.topology(points, true)
     (loss_true, _), grad_true = problem.value_and_grad(jnp.float32(true), params, points, topo_true, rays,
                                                        targets, background)
@@ -134,9 +143,9 @@ def main(argv=None) -> dict:
         "final_error_deg": float(angles[-1] - true_deg), "start_error_deg": float(np.rad2deg(start) - true_deg),
         "lowest_loss_step": best, "lowest_loss_deg": float(angles[best]),
         "loss_at_true_angle": float(loss_true), "grad_at_true_angle": float(grad_true),
-        "steps": args.steps, "learning_rate": args.lr, "rebuild_every": args.rebuild_every,
+        "steps": args.steps, "learning_rate": args.lr, "schedule": args.schedule, "rebuild_every": args.rebuild_every,
         "views": views.tolist(), "rays": int(rays.num_rays), "normals": args.normals, "mode": problem.mode,
-        "segments_per_ray": render_cfg.segments_per_ray,
+        "segments_per_ray": {"start": render_cfg.segments_per_ray, "end": problem.render_cfg.segments_per_ray},
         "descent_seconds": round(descent_seconds, 2), "total_seconds": round(time.perf_counter() - t_start, 2),
         "device": str(jax.devices()[0]), "geometry_check_max_abs": geometry_err,
         "angle_deg": angles.tolist(), "trajectory": traj.to_dict(),
@@ -144,13 +153,14 @@ def main(argv=None) -> dict:
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out.with_suffix(".json"), result)
-    plot(result, out.with_suffix(".png"))
+    out_json, out_png = Path(f"{out}.json"), Path(f"{out}.png")
+    atomic_write_json(out_json, result)
+    plot(result, out_png)
     print(f"\nrecovered {angles[-1]:.3f} deg (true {true_deg:g}, start {np.rad2deg(start):g}): error "
           f"{angles[-1] - true_deg:+.3f} deg after {args.steps} steps, descent {descent_seconds:.1f} s; "
           f"loss {traj.loss[0]:.6f} -> {traj.loss[-1]:.6f} (at the true angle {float(loss_true):.6f}); "
           f"compilations during the descent: {traj.compiles}")
-    print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")
+    print(f"wrote {out_json} and {out_png}")
     print(f"re-run: .venv/bin/python experiments/recover_bend.py --run {run_dir} --bench {args.bench}")
     return result
 

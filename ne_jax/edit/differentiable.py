@@ -11,10 +11,15 @@ wraps :func:`~ne_jax.edit.deformations.bend_points` with the angle as ``theta``.
 
 What is held fixed inside a gradient (the *topology*, :class:`EditTopology`): the discrete choices
 of the edit (:func:`~ne_jax.edit.apply.plan_edit`: deletions, the IST frame pairs and neighbours)
-and the K-D tree of the edited cloud (its permutation, boxes, candidate sets and point spacing).
-Positions reach the render only through the KNN distances inside those fixed voxels, and the IST
-through the frames of the moved points. :func:`recover_parameter` re-plans and rebuilds the tree on
-the host every few steps at the current estimate, so the topology follows the descent piecewise.
+and the K-D tree of the edited cloud (its permutation, partition, candidate sets and point spacing).
+Positions reach the render through the KNN distances and, by default, through the node boxes, which
+are translated with their points (:func:`follow_boxes`: the segments' end points move with the
+geometry; with the boxes frozen the density could not move and the gradient would see only the KNN
+weights); the IST depends on them through the frames of the moved points. The loss is smooth in
+``theta`` between discrete events that the fixed topology does not remove (a point entering a
+sample's K nearest, a voxel becoming minimal for a ray). :func:`recover_parameter` re-plans and
+rebuilds the tree on the host every few steps at the current estimate, so the topology follows the
+descent piecewise.
 
 Edited normals (``normals=``): ``"deform"`` (default) takes the edited point normals through the
 deformation, ``n' = normalize(J^-T n)`` with ``J = d deform / d xyz`` at the original point, so the
@@ -32,7 +37,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable, Literal
+from collections.abc import Callable
+from typing import Any, Literal
 
 import jax
 import jax.numpy as jnp
@@ -201,7 +207,7 @@ def make_edit_loss(render_cfg: RenderConfig, deform: Deformation, edit_cfg: Edit
 
     def forward_value_and_grad(theta, *args):
         flat, unravel = ravel_pytree(theta)
-        f = lambda x: loss(unravel(x), *args)  # noqa: E731
+        f = lambda x: loss(unravel(x), *args)
 
         def along(v):
             (value, out), (dvalue, _) = jax.jvp(f, (flat,), (v,))
@@ -225,9 +231,12 @@ class Trajectory:
         loss: MSE at each estimate (under the topology in force at that step).
         grad: gradient w.r.t. ``theta`` at each estimate.
         rebuilt: whether the plan and tree were rebuilt at that step (at that estimate).
-        dropped, overflow: segments lost by the render at that step (0: complete).
+        dropped, overflow: segments lost by the render at that step, after any growth (0: complete).
+        grown: whether the render's capacities were grown at that step (a recompilation).
         seconds: wall time since the start, at the end of each step.
         compiles: compilations of the loss's ``value_and_grad`` over the descent.
+        problem: the :class:`EditLoss` in force at the end (its render config's capacities grown or
+            not; its compiled ``value_and_grad`` warm).
     """
 
     theta: list = dataclasses.field(default_factory=list)
@@ -236,15 +245,18 @@ class Trajectory:
     rebuilt: list = dataclasses.field(default_factory=list)
     dropped: list = dataclasses.field(default_factory=list)
     overflow: list = dataclasses.field(default_factory=list)
+    grown: list = dataclasses.field(default_factory=list)
     seconds: list = dataclasses.field(default_factory=list)
     compiles: int = 0
+    problem: EditLoss | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready lists."""
-        flat = lambda xs: [np.asarray(x, np.float64).ravel().tolist() for x in xs]  # noqa: E731
+        flat = lambda xs: [np.asarray(x, np.float64).ravel().tolist() for x in xs]
         return {"theta": flat(self.theta), "loss": [float(v) for v in self.loss], "grad": flat(self.grad),
                 "rebuilt": [bool(v) for v in self.rebuilt], "dropped": [int(v) for v in self.dropped],
-                "overflow": [int(v) for v in self.overflow], "seconds": [round(float(v), 3) for v in self.seconds],
+                "overflow": [int(v) for v in self.overflow], "grown": [bool(v) for v in self.grown],
+                "seconds": [round(float(v), 3) for v in self.seconds],
                 "compiles": int(self.compiles)}
 
 
@@ -290,6 +302,7 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
         if rebuild:
             topology = problem.topology(points, theta, deleted)
         (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
+        grown = False
         for _ in range(max_grow):
             bigger = grown_config(problem.render_cfg, out)
             if bigger is None:
@@ -297,7 +310,7 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
             traj.compiles += fn._cache_size() - size0
             problem = make_edit_loss(bigger, problem.deform, problem.edit_cfg, problem.normals, problem.mode,
                                      problem.boxes)
-            fn, size0 = problem.value_and_grad, 0
+            fn, size0, grown = problem.value_and_grad, 0, True
             (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
         traj.theta.append(np.asarray(ravel_pytree(theta)[0]))
         traj.loss.append(float(value))
@@ -305,6 +318,7 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
         traj.rebuilt.append(bool(rebuild))
         traj.dropped.append(int(jnp.sum(out.dropped)))
         traj.overflow.append(int(jnp.sum(out.overflow)))
+        traj.grown.append(grown)
         traj.seconds.append(time.perf_counter() - t0)
         if callback is not None:
             callback(step, traj)
@@ -313,6 +327,7 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
         updates, opt_state = optimizer.update(grad, opt_state, theta)
         theta = optax.apply_updates(theta, updates)
     traj.compiles += fn._cache_size() - size0
+    traj.problem = problem
     return theta, traj
 
 

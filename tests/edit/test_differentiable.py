@@ -12,7 +12,12 @@ import pytest
 
 from ne_jax.data.rays import Rays
 from ne_jax.edit.apply import EditConfig
-from ne_jax.edit.differentiable import bend_deformation, follow_boxes, make_edit_loss, recover_parameter
+from ne_jax.edit.differentiable import (
+    bend_deformation,
+    follow_boxes,
+    make_edit_loss,
+    recover_parameter,
+)
 from ne_jax.edit.ist import ISTConfig
 from ne_jax.geometry import KDTreeConfig, PointState
 from ne_jax.render.renderer import RenderConfig
@@ -48,8 +53,8 @@ def world():
     topo = problem.topology(pts, TRUE)
     (_, out), _ = problem.value_and_grad(jnp.float32(TRUE), params, pts, topo, rays, jnp.zeros((R, 3)), bg)
     assert float(jnp.mean(out.opacity)) > 0.3 and int(jnp.sum(out.overflow)) == 0
-    return dict(points=pts, params=params, rays=rays, bg=bg, problem=problem, targets=out.rgb,
-                reverse=make_edit_loss(CFG, DEFORM, EDIT, mode="reverse"))
+    return {"points": pts, "params": params, "rays": rays, "bg": bg, "problem": problem, "targets": out.rgb,
+            "reverse": make_edit_loss(CFG, DEFORM, EDIT, mode="reverse")}
 
 
 def _value_and_grad(w, theta, deleted=None, topo_at=None):
@@ -62,7 +67,7 @@ def _value_and_grad(w, theta, deleted=None, topo_at=None):
 
 @pytest.mark.parametrize("theta", [0.0, 0.3, TRUE])
 def test_gradient_is_finite(world, theta):
-    value, grad, out, _ = _value_and_grad(world, theta)
+    value, grad, _, _ = _value_and_grad(world, theta)
     assert np.isfinite(value) and np.isfinite(grad)
     if theta != TRUE:
         assert value > 0 and grad != 0.0
@@ -70,7 +75,7 @@ def test_gradient_is_finite(world, theta):
 
 def test_gradient_is_finite_with_deleted_points(world):
     deleted = np.asarray(world["points"].xyz)[:, 2] > 0.5
-    value, grad, out, topo = _value_and_grad(world, 0.3, deleted=deleted)
+    value, grad, _, topo = _value_and_grad(world, 0.3, deleted=deleted)
     assert not np.asarray(topo.plan.alive)[deleted].any()
     assert np.isfinite(value) and np.isfinite(grad) and grad != 0.0
     _, grad0, _, _ = _value_and_grad(world, 0.0, deleted=deleted)  # identity angle with deletions
@@ -91,7 +96,7 @@ def test_gradient_matches_central_difference(world):
     for theta in (0.2, 0.35, 0.45, 0.55, 0.7):
         topo = p.topology(w["points"], theta)
         (value, _), grad = p.value_and_grad(jnp.float32(theta), w["params"], w["points"], topo, rays, targets, w["bg"])
-        f = lambda t: float(loss(jnp.float32(t), w["params"], w["points"], topo, rays, targets, w["bg"])[0])  # noqa: E731
+        f = lambda t, topo=topo: float(loss(jnp.float32(t), w["params"], w["points"], topo, rays, targets, w["bg"])[0])
         assert abs(f(theta) - float(value)) <= 1e-6 * max(1.0, float(value))
         h = 1e-4
         fd1, fd2 = (f(theta + h) - f(theta - h)) / (2 * h), (f(theta + 2 * h) - f(theta - 2 * h)) / (4 * h)
