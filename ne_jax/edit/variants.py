@@ -82,8 +82,6 @@ def _pointnerf_like(run: RunConfig) -> RunConfig:
 
 
 def _samples(run: RunConfig) -> RunConfig:
-    if not any(f.name == "integration" for f in dataclasses.fields(run.render)):
-        raise NotImplementedError("traditional_sampling needs RenderConfig.integration (per-sample shading)")
     return run.replace(render=run.render.replace(integration="samples"))
 
 
