@@ -233,6 +233,24 @@ def level_table(cfg: QuadratureConfig) -> tuple[np.ndarray, np.ndarray]:
     return _level_table(cfg.rule, tuple(int(s) for s in cfg.samples_per_level))
 
 
+def _bins(cfg: QuadratureConfig, level_index: jax.Array, dtype, offset) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``s`` equal bins per segment: ``(u [..., S], inside [..., S], s [..., 1])`` with sample ``j`` at
+    fraction ``(j + offset_j) / s``; padded slots ``j >= s`` at ``u = 1``."""
+    samples = tuple(int(v) for v in cfg.samples_per_level)
+    idx = jnp.clip(jnp.asarray(level_index), 0, len(samples) - 1)
+    s = jnp.asarray(samples, dtype)[idx][..., None]
+    j = jnp.arange(cfg.max_samples, dtype=dtype)
+    inside = j < s
+    return jnp.where(inside, (j + offset) / s, 1.0), inside, s
+
+
+def _jitter(cfg: QuadratureConfig, level_index: jax.Array, dtype, key) -> jax.Array:
+    """The stratified draws ``U [..., S] ~ Uniform[0, 1)`` of the stochastic rule (one per bin)."""
+    if key is None:
+        raise ValueError("the stochastic rule needs a PRNG key")
+    return jax.random.uniform(key, (*jnp.shape(level_index), cfg.max_samples), dtype)
+
+
 def level_samples(cfg: QuadratureConfig, t_lo: jax.Array, t_hi: jax.Array,
                   level_index: jax.Array, key: jax.Array | None = None
                   ) -> tuple[jax.Array, jax.Array]:
@@ -243,19 +261,29 @@ def level_samples(cfg: QuadratureConfig, t_lo: jax.Array, t_hi: jax.Array,
     ``"stochastic"`` the first ``s`` slots of each segment are stratified over ``s`` bins."""
     t_lo = jnp.asarray(t_lo)
     dtype = jnp.result_type(t_lo, t_hi)
-    samples = tuple(int(s) for s in cfg.samples_per_level)
-    idx = jnp.clip(jnp.asarray(level_index), 0, len(samples) - 1)
-    u_tab, w_tab = level_table(cfg)
     if cfg.rule == "stochastic":
-        if key is None:
-            raise ValueError("the stochastic rule needs a PRNG key")
-        s = jnp.asarray(samples, dtype)[idx][..., None]
-        j = jnp.arange(cfg.max_samples, dtype=dtype)
-        jitter = jax.random.uniform(key, (*idx.shape, cfg.max_samples), dtype)
-        inside = j < s
-        u = jnp.where(inside, (j + jitter) / s, 1.0)
+        u, inside, s = _bins(cfg, level_index, dtype, _jitter(cfg, level_index, dtype, key))
         w = jnp.where(inside, 1.0 / s, 0.0)
     else:
+        u_tab, w_tab = level_table(cfg)
+        idx = jnp.clip(jnp.asarray(level_index), 0, len(cfg.samples_per_level) - 1)
         u = jnp.asarray(u_tab, dtype)[idx]
         w = jnp.asarray(w_tab, dtype)[idx]
     return positions_from_fractions(t_lo, jnp.asarray(t_hi), u), w
+
+
+def sample_intervals(cfg: QuadratureConfig, t_lo: jax.Array, t_hi: jax.Array, level_index: jax.Array,
+                     key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Sample positions of the renderer's point-sampling mode (``integration="samples"``):
+    ``(t [..., S], inside [..., S], s [..., 1])`` for segments ``[t_lo, t_hi]`` (``[...]``) of levels
+    ``level_index`` (clipped as in :func:`level_samples`); ``s`` the samples of each segment.
+
+    A segment with ``s`` samples owns ``s`` equal sub-intervals; sample ``j`` lies at fraction
+    ``(j + 1/2) / s`` (deterministic rules) or ``(j + U_j) / s`` (``"stochastic"``: the same draws,
+    hence the same positions, as :func:`level_samples` with that key). Padded slots ``j >= s`` sit at
+    ``t_hi`` with ``inside`` False."""
+    t_lo = jnp.asarray(t_lo)
+    dtype = jnp.result_type(t_lo, t_hi)
+    offset = _jitter(cfg, level_index, dtype, key) if cfg.rule == "stochastic" else jnp.asarray(0.5, dtype)
+    u, inside, s = _bins(cfg, level_index, dtype, offset)
+    return positions_from_fractions(t_lo, jnp.asarray(t_hi), u), inside, s

@@ -59,7 +59,7 @@ from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
 from ne_jax.geometry.knn import knn_integrate, knn_interpolate
 from ne_jax.geometry.points import PointState
 from ne_jax.render.composite import composite
-from ne_jax.render.quadrature import QuadratureConfig, level_samples, positions_from_fractions
+from ne_jax.render.quadrature import QuadratureConfig, level_samples, sample_intervals
 from ne_jax.render.shading import Effects, ShadingConfig, background_color, shade
 
 INTEGRATIONS: tuple[str, ...] = ("segment", "samples")
@@ -280,25 +280,33 @@ def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, back
         full = jnp.zeros((r * m,) + v.shape[1:], v.dtype).at[target].set(v, mode="drop")
         return full.reshape((r, m) + v.shape[1:])
 
-    lengths = (seg.t_hi - seg.t_lo) / tree.spacing
-    bg = background_color(cfg.shading, params, rays.origin, rays.direction, background)
-    sigma_full = unpack(sigma)
     normal_full = None if normal is None else unpack(normal)
-    comp = composite(sigma_full, unpack(rgb), lengths, keep, 0.5 * (seg.t_lo + seg.t_hi), bg,
-                     normals=normal_full)
+    extra_full = None if extra is None else {k: unpack(v) for k, v in extra.items()}
+    return _composite_out(cfg, params, rays, background, seg, keep, keep, unpack(sigma), unpack(rgb),
+                          (seg.t_hi - seg.t_lo) / tree.spacing, 0.5 * (seg.t_lo + seg.t_hi), normal_full, extra_full)
+
+
+def _composite_out(cfg: RenderConfig, params, rays: Rays, background, seg, keep, valid, sigma, rgb, lengths, depth_t,
+                   normals, extra) -> tuple[RenderOut, SegmentAux | None]:
+    """Composite ``valid [R, N]`` slots (segments, or samples) front to back: ``sigma``, ``rgb``,
+    ``lengths`` (point spacings), ``depth_t`` and optional shading ``normals`` ``[R, N, ...]``; the
+    counts come from the segments (``keep [R, M]``: rendered; ``seg``: overflow, valid). With
+    ``extra`` (``pred_normal``, ``confidence``, ``normal_moment`` ``[R, N, ...]``) also the
+    :class:`SegmentAux` of the slots."""
+    bg = background_color(cfg.shading, params, rays.origin, rays.direction, background)
+    comp = composite(sigma, rgb, lengths, valid, depth_t, bg, normals=normals)
     normal_map = comp.normal if comp.normal is not None else jnp.zeros_like(comp.rgb)
     out = RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
                     num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
                     dropped=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32))
-    if not aux:
+    if extra is None:
         return out, None
-    zeros3 = jnp.zeros((r, m, 3), comp.rgb.dtype)
     seg_aux = SegmentAux(
-        valid=keep, weights=comp.weights, sigma=sigma_full, lengths=jnp.where(keep, lengths, 0.0),
-        pred_normal=unpack(extra["pred_normal"]),
-        shading_normal=zeros3 if normal_full is None else normal_full,
-        view_dir=jnp.where(keep[..., None], rays.direction[:, None, :], 0.0),
-        confidence=unpack(extra["confidence"]), normal_moment=unpack(extra["normal_moment"]))
+        valid=valid, weights=comp.weights, sigma=sigma, lengths=jnp.where(valid, lengths, 0.0),
+        pred_normal=extra["pred_normal"],
+        shading_normal=jnp.zeros(valid.shape + (3,), comp.rgb.dtype) if normals is None else normals,
+        view_dir=jnp.where(valid[..., None], rays.direction[:, None, :], 0.0),
+        confidence=extra["confidence"], normal_moment=extra["normal_moment"])
     return out, seg_aux
 
 
@@ -323,34 +331,6 @@ def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direct
     return out.sigma, out.rgb, out.shading_normal, extra
 
 
-def sample_intervals(cfg: QuadratureConfig, t_lo: jax.Array, t_hi: jax.Array, level_index: jax.Array,
-                     key: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
-    """Sample positions of the point-sampling mode (``integration="samples"``): ``(t [..., S], inside
-    [..., S])`` for segments ``[t_lo, t_hi]`` (``[...]``) of levels ``level_index`` (0 = bottom
-    rendering level, clipped as in :func:`~ne_jax.render.quadrature.level_samples`).
-
-    A segment with ``s`` samples owns ``s`` equal sub-intervals; sample ``j`` lies at fraction
-    ``(j + 1/2) / s`` (deterministic rules) or ``(j + U_j) / s``, ``U ~ Uniform[0, 1)`` from ``key``
-    (``"stochastic"``: the same draws, hence the same positions, as ``level_samples`` with that key).
-    Padded slots ``j >= s`` sit at ``t_hi`` with ``inside`` False."""
-    t_lo = jnp.asarray(t_lo)
-    t_hi = jnp.asarray(t_hi)
-    dtype = jnp.result_type(t_lo, t_hi)
-    samples = tuple(int(s) for s in cfg.samples_per_level)
-    idx = jnp.clip(jnp.asarray(level_index), 0, len(samples) - 1)
-    s = jnp.asarray(samples, dtype)[idx][..., None]
-    j = jnp.arange(cfg.max_samples, dtype=dtype)
-    if cfg.rule == "stochastic":
-        if key is None:
-            raise ValueError("the stochastic rule needs a PRNG key")
-        offset = jax.random.uniform(key, (*idx.shape, cfg.max_samples), dtype)
-    else:
-        offset = jnp.asarray(0.5, dtype)
-    inside = j < s
-    u = jnp.where(inside, (j + offset) / s, 1.0)
-    return positions_from_fractions(t_lo, t_hi, u), inside
-
-
 def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
                     aux: bool, seg, keep, slot, live) -> tuple[RenderOut, SegmentAux | None]:
     """The ``integration="samples"`` half of :func:`_render`, from the packed segments on: every
@@ -363,7 +343,7 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
     origin, direction = rays.origin[ray], rays.direction[ray]
     t_lo, t_hi = flat(seg.t_lo)[slot], flat(seg.t_hi)[slot]
     level_index = (tree.depth - 1) - flat(seg.level)[slot]
-    t, inside = sample_intervals(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
+    t, inside, s_count = sample_intervals(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S], [B, 1]
     pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
     effects = cfg.shading.effects
     needed = _values_to_interpolate(scene.points, effects, aux)
@@ -371,9 +351,7 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
                               needed)  # [B, S, ...]
     view = jnp.broadcast_to(direction[:, None, :], pos.shape)
     sh = shade(cfg.shading, params, vals["feature"], vals.get("normal"), view, vals.get("ist"))
-    samples = jnp.asarray(tuple(int(v) for v in cfg.quadrature.samples_per_level), t.dtype)
-    s_count = samples[jnp.clip(level_index, 0, samples.shape[0] - 1)]
-    sub_len = jnp.where(inside, ((t_hi - t_lo) / tree.spacing / s_count)[:, None], 0.0)  # [B, S]
+    sub_len = jnp.where(inside, (t_hi - t_lo)[:, None] / tree.spacing / s_count, 0.0)  # [B, S]
 
     def unpack(v):  # packed [B, S, ...] -> [R, M * S, ...], zeros in slots without a live segment
         target = jnp.where(live, slot, r * m)
@@ -382,26 +360,14 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
 
     ok = jnp.repeat(keep, ns, axis=1) & unpack(inside)  # [R, M * S]
     mask = lambda v: jnp.where(ok.reshape(ok.shape + (1,) * (v.ndim - 2)), v, 0.0)  # noqa: E731
-    sigma_full = mask(unpack(sh.sigma))
-    lengths = mask(unpack(sub_len))
     normal_full = None if sh.shading_normal is None else mask(unpack(sh.shading_normal))
-    bg = background_color(cfg.shading, params, rays.origin, rays.direction, background)
-    comp = composite(sigma_full, unpack(sh.rgb), lengths, ok, unpack(t), bg, normals=normal_full)
-    normal_map = comp.normal if comp.normal is not None else jnp.zeros_like(comp.rgb)
-    out = RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
-                    num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
-                    dropped=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32))
-    if not aux:
-        return out, None
-    zeros3 = jnp.zeros(ok.shape + (3,), comp.rgb.dtype)
-    seg_aux = SegmentAux(
-        valid=ok, weights=comp.weights, sigma=sigma_full, lengths=lengths,
-        pred_normal=mask(unpack(sh.pred_normal)),
-        shading_normal=zeros3 if normal_full is None else normal_full,
-        view_dir=jnp.where(ok[..., None], rays.direction[:, None, :], 0.0),
-        confidence=mask(unpack(vals["confidence"][..., 0])),
-        normal_moment=mask(unpack(vals["normal_moment"].reshape(vals["normal_moment"].shape[:2] + (3, 3)))))
-    return out, seg_aux
+    extra = None
+    if aux:
+        moment = vals["normal_moment"].reshape(vals["normal_moment"].shape[:2] + (3, 3))
+        extra = {"pred_normal": mask(unpack(sh.pred_normal)), "confidence": mask(unpack(vals["confidence"][..., 0])),
+                 "normal_moment": mask(unpack(moment))}
+    return _composite_out(cfg, params, rays, background, seg, keep, ok, mask(unpack(sh.sigma)), unpack(sh.rgb),
+                          mask(unpack(sub_len)), unpack(t), normal_full, extra)
 
 
 @functools.partial(jax.jit, static_argnums=0)

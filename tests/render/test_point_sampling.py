@@ -13,9 +13,9 @@ from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.knn import knn_interpolate
 from ne_jax.geometry.points import PointState
-from ne_jax.render.quadrature import QuadratureConfig, level_samples
+from ne_jax.render.quadrature import QuadratureConfig, level_samples, sample_intervals
 from ne_jax.render.renderer import (PointScene, RenderConfig, _render_chunk, render_chunked, render_image,
-                                    render_rays, render_rays_with_aux, sample_intervals)
+                                    render_rays, render_rays_with_aux)
 from ne_jax.render.shading import init_color_model, shade
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
@@ -59,7 +59,8 @@ def test_sample_positions_are_sub_interval_midpoints_or_stratified():
     t_lo = jnp.asarray([1.0, 2.0, 0.5])
     t_hi = jnp.asarray([1.3, 3.0, 0.5])
     level = jnp.asarray([0, 1, 1])
-    t, inside = sample_intervals(q, t_lo, t_hi, level)
+    t, inside, s = sample_intervals(q, t_lo, t_hi, level)
+    np.testing.assert_array_equal(np.asarray(s)[:, 0], [3, 5, 5])
     np.testing.assert_array_equal(np.asarray(inside), [[1, 1, 1, 0, 0], [1] * 5, [1] * 5])
     np.testing.assert_allclose(np.asarray(t[0, :3]), 1.0 + 0.3 * (np.arange(3) + 0.5) / 3, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(t[1]), 2.0 + (np.arange(5) + 0.5) / 5, rtol=1e-6)
@@ -67,7 +68,7 @@ def test_sample_positions_are_sub_interval_midpoints_or_stratified():
     # stochastic: one sample inside each sub-interval, the same draws as the segment mode's rule
     qs = QuadratureConfig(rule="stochastic", samples_per_level=(3, 5))
     key = jax.random.key(4)
-    ts, inside_s = sample_intervals(qs, t_lo, t_hi, level, key)
+    ts, inside_s, _ = sample_intervals(qs, t_lo, t_hi, level, key)
     ref, w = level_samples(qs, t_lo, t_hi, level, key)
     np.testing.assert_array_equal(np.asarray(ts), np.asarray(ref))
     np.testing.assert_array_equal(np.asarray(inside_s), np.asarray(w) > 0)
