@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from ne_jax.edit.ist import ISTConfig, ISTPlan, ist_from_plan, plan_ist
+from ne_jax.edit.ist import ISTConfig, ISTPlan, ist_from_plan, ist_neighbors, plan_ist
 from ne_jax.edit.targets import EditSource, edit_target
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
@@ -71,15 +71,13 @@ def plan_edit(cfg: EditConfig, points: PointState, xyz, deleted) -> EditPlan:
     alive = np.asarray(points.alive) & ~np.asarray(deleted, bool)
     xyz0, normal0, conf = np.asarray(points.xyz), np.asarray(points.normal), np.asarray(points.confidence)
     normals = _edited_normals(cfg, xyz, alive)
-    plan = plan_ist(cfg.ist, xyz0, normal0, xyz, normals, alive, conf)
     # a point whose neighbourhood did not move keeps its normal: re-estimating it next to a deletion
     # would only tilt it (a truncated neighbourhood), and its IST must stay the identity
+    nbrs, used = ist_neighbors(cfg.ist, xyz0, alive)
     moved = np.any(xyz != xyz0, axis=1)
-    nbrs, used = np.asarray(plan.neighbors), np.asarray(plan.weight) > 0
     still = alive & ~moved & ~np.any(moved[nbrs] & used, axis=1)
-    if still.any():
-        normals[still] = normal0[still]
-        plan = plan_ist(cfg.ist, xyz0, normal0, xyz, normals, alive, conf)
+    normals[still] = normal0[still]
+    plan = plan_ist(cfg.ist, xyz0, normal0, xyz, normals, alive, conf, neighbors=(nbrs, used))
     return EditPlan(alive=jnp.asarray(alive), normal=jnp.asarray(normals, points.normal.dtype), ist=plan)
 
 

@@ -146,19 +146,11 @@ def _unit_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x / np.where(length > 0, length, 1.0)[..., None], length
 
 
-def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence) -> ISTPlan:
-    """Choose frame pairs and averaging neighbours (host, numpy float64).
-
-    Args:
-        xyz0, normal0: ``[C, 3]`` original positions and normals.
-        xyz1, normal1: ``[C, 3]`` edited positions and (unoriented) normals.
-        alive1: ``[C]`` bool alive after the edit.
-        confidence: ``[C]`` point confidences (weights of the averages).
-    """
-    p0, n0 = np.asarray(xyz0, np.float64), np.asarray(normal0, np.float64)
-    p1, n1 = np.asarray(xyz1, np.float64), np.asarray(normal1, np.float64)
+def ist_neighbors(cfg: ISTConfig, xyz0, alive1) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k = cfg.candidates`` nearest neighbours of every slot in the original cloud among the
+    points alive after the edit (host): ``(neighbors [C, k] int64, valid [C, k] bool)``, nearest first."""
+    p0 = np.asarray(xyz0, np.float64)
     alive = np.asarray(alive1, bool)
-    conf = np.asarray(confidence, np.float64)
     c, k = alive.size, int(cfg.candidates)
     idx = np.flatnonzero(alive)
     neighbors = np.zeros((c, k), np.int64)
@@ -174,6 +166,27 @@ def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence) -
         ok = np.take_along_axis(not_self, order, 1)[:, : kk - 1]
         neighbors[idx, : kk - 1] = nn
         valid[idx, : kk - 1] = ok
+    return neighbors, valid
+
+
+def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence,
+             neighbors: tuple[np.ndarray, np.ndarray] | None = None) -> ISTPlan:
+    """Choose frame pairs and averaging neighbours (host, numpy float64).
+
+    Args:
+        xyz0, normal0: ``[C, 3]`` original positions and normals.
+        xyz1, normal1: ``[C, 3]`` edited positions and (unoriented) normals.
+        alive1: ``[C]`` bool alive after the edit.
+        confidence: ``[C]`` point confidences (weights of the averages).
+        neighbors: :func:`ist_neighbors` of ``xyz0, alive1``, if already computed.
+    """
+    p0, n0 = np.asarray(xyz0, np.float64), np.asarray(normal0, np.float64)
+    p1, n1 = np.asarray(xyz1, np.float64), np.asarray(normal1, np.float64)
+    alive = np.asarray(alive1, bool)
+    conf = np.asarray(confidence, np.float64)
+    c, k = alive.size, int(cfg.candidates)
+    idx = np.flatnonzero(alive)
+    neighbors, valid = ist_neighbors(cfg, p0, alive) if neighbors is None else neighbors
     pair = np.zeros((c, 2), np.int64)
     good = np.zeros(c, bool)
     if idx.size > 2 and k >= 2:
@@ -282,4 +295,5 @@ def compute_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence
     return ist, sign, {k: int(v) for k, v in counts.items()}
 
 
-__all__ = ["ISTConfig", "ISTPlan", "compute_ist", "frame_transforms", "ist_from_plan", "nearest_rotation", "plan_ist"]
+__all__ = ["ISTConfig", "ISTPlan", "compute_ist", "frame_transforms", "ist_from_plan", "ist_neighbors",
+           "nearest_rotation", "plan_ist"]
