@@ -90,6 +90,23 @@ def config_to_json(cfg: Any) -> Any:
     raise TypeError(f"config value of type {type(cfg).__name__} cannot be stored in a checkpoint: {cfg!r}")
 
 
+def _config_type(name: str) -> type:
+    """The ``ne_jax`` dataclass named ``"module:QualName"`` (as :func:`config_to_json` writes it).
+
+    Raises:
+        CheckpointError: for a type outside ``ne_jax`` or one that no longer exists."""
+    module, _, qualname = name.partition(":")
+    if not (module == "ne_jax" or module.startswith("ne_jax.")):
+        raise CheckpointError(f"config type: expected an ne_jax dataclass, found {name!r}")
+    try:
+        obj = importlib.import_module(module)
+        for part in qualname.split("."):
+            obj = getattr(obj, part)
+    except (ImportError, AttributeError) as e:
+        raise CheckpointError(f"config type {name!r} does not exist in this ne_jax ({e})") from None
+    return obj
+
+
 def config_from_json(data: Any) -> Any:
     """Inverse of :func:`config_to_json`; only ``ne_jax`` dataclasses are rebuilt.
 
@@ -98,17 +115,8 @@ def config_from_json(data: Any) -> Any:
     if isinstance(data, dict) and "__tuple__" in data:
         return tuple(config_from_json(v) for v in data["__tuple__"])
     if isinstance(data, dict) and "__type__" in data:
-        module, _, qualname = data["__type__"].partition(":")
-        if not (module == "ne_jax" or module.startswith("ne_jax.")):
-            raise CheckpointError(f"config type: expected an ne_jax dataclass, found {data['__type__']!r}")
-        try:
-            obj = importlib.import_module(module)
-            for part in qualname.split("."):
-                obj = getattr(obj, part)
-        except (ImportError, AttributeError) as e:
-            raise CheckpointError(f"config type {data['__type__']!r} does not exist in this ne_jax ({e})") from None
         fields = {k: config_from_json(v) for k, v in data.items() if k != "__type__"}
-        return obj(**fields)
+        return _config_type(data["__type__"])(**fields)
     if isinstance(data, list):
         return [config_from_json(v) for v in data]
     return data
@@ -117,12 +125,8 @@ def config_from_json(data: Any) -> Any:
 def _is_default(node: dict, name: str) -> bool:
     """Whether field ``name`` of the encoded dataclass ``node`` holds the dataclass's default."""
     try:
-        module, _, qualname = node["__type__"].partition(":")
-        obj = importlib.import_module(module)
-        for part in qualname.split("."):
-            obj = getattr(obj, part)
-        field = {f.name: f for f in dataclasses.fields(obj)}[name]
-    except (KeyError, ImportError, AttributeError, TypeError):
+        field = {f.name: f for f in dataclasses.fields(_config_type(node["__type__"]))}[name]
+    except (KeyError, TypeError, CheckpointError):
         return False
     if field.default is not dataclasses.MISSING:
         default = field.default

@@ -305,3 +305,17 @@ def test_sigkill_mid_write_resumes_from_the_last_complete_checkpoint(tmp_path):
     # the resumed run's next save clears the leftover
     save_checkpoint(run_dir, *small_run(4), SMALL_TCFG, SMALL_RCFG, keep=2)
     assert sorted(p.name for p in run_dir.iterdir()) == ["ckpt_00000003", "ckpt_00000004", "latest"]
+
+
+def test_a_field_added_later_at_its_default_is_no_difference():
+    """A config written before a field existed (e.g. ``TrainConfig.train_ist``) equals today's when
+    today's value is the default; a non-default value, or a changed field, is still a difference."""
+    expected = ckpt.config_to_json(TCFG)
+    old = json.loads(json.dumps(expected))
+    del old["train_ist"]
+    del old["loss"]["ist_orthogonality"]
+    assert ckpt.config_diff(old, expected) == []
+    changed = ckpt.config_to_json(TCFG.replace(train_ist=True))
+    assert ckpt.config_diff(old, changed) == ["train_ist (missing in checkpoint; run has True)"]
+    old["lr"] = 123.0
+    assert len(ckpt.config_diff(old, expected)) == 1
