@@ -210,11 +210,18 @@ def compose(name: str, *edits: Edit) -> Edit:
     return Edit(name, "compose", move, delete, description=" then ".join(e.name for e in edits))
 
 
+def jacobian_normals(move: Callable[[jax.Array], jax.Array], points: jax.Array, normals: jax.Array) -> jax.Array:
+    """Normals carried by a deformation ``move`` (``[N, 3] -> [N, 3]``): ``n' = normalize(J^{-T} n)``
+    with ``J`` the ``3x3`` Jacobian of ``move`` at each point; zero normals stay zero. Differentiable
+    in whatever ``move`` closes over. ``points``/``normals`` ``[N, 3]`` -> ``[N, 3]``."""
+    def one(p, n):
+        jac = jax.jacfwd(lambda x: move(x[None])[0])(p)
+        return safe_normalize(jnp.linalg.solve(jac.T, n))
+    return jax.vmap(one)(points, normals)
+
+
 @partial(jax.jit, static_argnums=0)
 def transform_normals(edit: Edit, points, normals) -> jax.Array:
-    """Normals of the edited surface: ``n' = normalize(J^{-T} n)`` with ``J`` the Jacobian of
-    ``edit.move`` at each point. ``points``/``normals`` ``[N, 3]`` -> ``[N, 3]``."""
-    def one(p, n):
-        jac = jax.jacfwd(lambda x: edit.move(x[None])[0])(p)
-        return safe_normalize(jnp.linalg.solve(jac.T, n))
-    return jax.vmap(one)(_vec(points), _vec(normals))
+    """Normals of the edited surface (:func:`jacobian_normals` of ``edit.move``), compiled once per
+    edit. ``points``/``normals`` ``[N, 3]`` -> ``[N, 3]``."""
+    return jacobian_normals(edit.move, _vec(points), _vec(normals))

@@ -49,10 +49,9 @@ from jax.flatten_util import ravel_pytree
 
 from ne_jax.data.rays import Rays
 from ne_jax.edit.apply import EditConfig, EditPlan, edited_points, plan_edit
-from ne_jax.edit.deformations import bend_points
+from ne_jax.edit.deformations import bend_points, jacobian_normals
 from ne_jax.geometry.kdtree import KDTree, build_tree
 from ne_jax.geometry.points import PointState
-from ne_jax.numerics import safe_normalize
 from ne_jax.render.renderer import PointScene, RenderConfig, grown_config, render_rays
 
 Deformation = Callable[[Any, jax.Array], jax.Array]
@@ -107,12 +106,9 @@ def follow_boxes(tree: KDTree, xyz: jax.Array, xyz_ref: jax.Array) -> KDTree:
 
 
 def deformed_normals(deform: Deformation, theta, xyz: jax.Array, normal: jax.Array) -> jax.Array:
-    """Normals carried by the deformation: ``normalize(J^-T n)`` per point, ``J`` the ``3x3``
-    Jacobian of ``deform(theta, .)`` at ``xyz [C, 3]``; zero normals stay zero. ``[C, 3]``."""
-    def one(p, n):
-        jac = jax.jacfwd(lambda x: deform(theta, x[None])[0])(p)
-        return jnp.linalg.solve(jac.T, n)
-    return safe_normalize(jax.vmap(one)(xyz, normal))
+    """Normals carried by ``deform(theta, .)`` (:func:`~ne_jax.edit.deformations.jacobian_normals`)
+    at ``xyz [C, 3]``. ``[C, 3]``."""
+    return jacobian_normals(lambda x: deform(theta, x), xyz, normal)
 
 
 @dataclasses.dataclass(frozen=True)
