@@ -17,7 +17,6 @@ and ``.md`` after every (scene, edit), and a figure grid ``deform_benchmark_<pre
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time

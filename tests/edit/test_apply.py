@@ -7,7 +7,7 @@ import pytest
 
 from ne_jax.data.ply import write_ply
 from ne_jax.edit.apply import apply_edit
-from ne_jax.edit.deformations import Edit, delete_part, halfspace, rotate_points, rotation_matrix
+from ne_jax.edit.deformations import Edit, delete_part, halfspace, rotation_matrix
 from ne_jax.edit.targets import EditError
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
@@ -27,7 +27,6 @@ def points():
 
 
 def rotation_edit(rot, name="rot"):
-    axis_angle = (rot, name)
     return Edit(name, "rigid", lambda p: p @ np.asarray(rot, np.float32).T)
 
 
