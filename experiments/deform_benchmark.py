@@ -32,7 +32,7 @@ from ne_jax.data.synthetic import SCENES, get_scene
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
 from ne_jax.eval import evaluate_split
-from ne_jax.train.loop import TrainedModel, get_run_preset, load_trained, train
+from ne_jax.train.loop import TrainedModel, get_run_preset, train
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -48,10 +48,9 @@ def score(model: TrainedModel, variant, scene_dir: Path) -> tuple[dict, np.ndarr
 
 def trained_model(run, scene_dir: Path, run_dir: Path, log) -> TrainedModel:
     t0 = time.perf_counter()
-    train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
+    result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
     log(f"  model {run.name}: {time.perf_counter() - t0:.0f} s (cached runs return at once)")
-    model = load_trained(run_dir)
-    return TrainedModel(run=model.run, state=model.state, scene=model.scene, scene_dir=scene_dir, meta=model.meta)
+    return TrainedModel(run=run, state=result.state, scene=result.scene, scene_dir=scene_dir, meta={})
 
 
 def main(argv=None) -> None:

@@ -147,13 +147,12 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_edit(args) -> int:
-    from ne_jax.edit.apply import EditConfig
     from ne_jax.edit.model import edit_model
 
     model, scene_dir = _load(args)
     model = dataclasses.replace(model, scene_dir=scene_dir)
     out = Path(args.out)
-    edited, report = edit_model(model, args.edit, out, ist=not args.no_ist, cfg=EditConfig(), scene_dir=args.edited_scene)
+    edited, report = edit_model(model, args.edit, out, ist=not args.no_ist, scene_dir=args.edited_scene)
     print(f"edit {report['edit']!r}: {report['moved']} points moved, {report['deleted']} deleted, {report['alive']} alive; "
           f"IST from {report['good']} frames, {report['filled']} filled from neighbours, {report['identity']} identity "
           f"({report['seconds']:.1f} s) -> {out}")

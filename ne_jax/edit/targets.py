@@ -20,13 +20,13 @@ range or of dead slots, or an edit that deletes every point.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Sequence, Union
 
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from ne_jax.data.ply import PlyError, read_ply
 from ne_jax.edit.deformations import Edit
@@ -41,7 +41,7 @@ EditSource = Union[Edit, str, os.PathLike, np.ndarray, Sequence]
 """What :func:`edit_target` accepts."""
 
 
-@struct.dataclass
+@dataclasses.dataclass(frozen=True)
 class EditTarget:
     """``xyz [C, 3]`` target positions of every slot (dead and deleted slots: their old position)
     and ``deleted [C]`` bool (alive points the edit removes)."""
