@@ -52,12 +52,20 @@ def _psnr(model):
     return report["psnr"]
 
 
-def test_edit_by_name_writes_a_run_directory_that_renders_zero_shot(trained, scene_dir, tmp_path):
+@pytest.fixture(scope="module")
+def bent(trained, tmp_path_factory):
+    """The trained model edited by the scene's "bend", written to a run directory (shared: one edit)."""
+    out = tmp_path_factory.mktemp("edited") / "bend"
     model = load_trained(trained)
-    edited, report = edit_model(model, "bend", tmp_path / "edited")
+    edited, report = edit_model(model, "bend", out)
+    return model, edited, report, out
+
+
+def test_edit_by_name_writes_a_run_directory_that_renders_zero_shot(bent, scene_dir):
+    model, edited, report, out = bent
     assert report["moved"] > 0 and report["good"] > 0.9 * report["alive"]
     assert edited.run.render.shading.effects.ist and edited.scene_dir == scene_dir / "edits" / "bend"
-    back = load_trained(tmp_path / "edited")  # every run command reads it
+    back = load_trained(out)  # every run command reads it
     np.testing.assert_array_equal(np.asarray(back.scene.points.xyz), np.asarray(edited.scene.points.xyz))
     np.testing.assert_array_equal(np.asarray(back.scene.points.ist), np.asarray(edited.scene.points.ist))
     assert back.scene_dir == (scene_dir / "edits" / "bend").resolve()
@@ -66,7 +74,7 @@ def test_edit_by_name_writes_a_run_directory_that_renders_zero_shot(trained, sce
                     np.asarray(back.state.params["shader"]["density"]["kernel"]).ravel()):
         assert a == b
     assert np.isfinite(_psnr(back))
-    meta = json.loads((tmp_path / "edited" / "metrics.json").read_text())
+    meta = json.loads((out / "metrics.json").read_text())
     assert meta["edit"]["edit"] == "bend"
 
 
@@ -83,22 +91,27 @@ def test_edit_of_a_non_benchmark_scene_by_name_is_refused(trained, tmp_path):
         edit_model(model, "bend")
 
 
-@pytest.mark.parametrize("train_ist", [False, True])
-def test_finetune_trains_features_and_optionally_the_ist(trained, tmp_path, train_ist):
-    edited, _ = edit_model(load_trained(trained), "bend", tmp_path / "edited")
-    result = finetune(edited, tmp_path / "ft", 1, steps_per_epoch=3, train_ist=train_ist, progress=False,
-                      log=lambda s: None)
-    before, after = edited.scene.points, result.scene.points
+def _check_finetuned(before, after, history, run_dir, train_ist):
+    """Features always trained; the ISTs exactly when ``train_ist`` (kept orthogonal)."""
     assert not np.array_equal(np.asarray(before.feature), np.asarray(after.feature))
     ist_changed = not np.array_equal(np.asarray(before.ist), np.asarray(after.ist))
     assert ist_changed == train_ist
-    record = result.history[-1]
+    record = history[-1]
     assert ("loss/ist_orthogonality" in record) == train_ist and record["skipped"] == 0
     if train_ist:  # kept orthogonal
         ist = np.asarray(after.ist)[np.asarray(after.alive)]
         gram = np.einsum("cji,cjk->cik", ist, ist)
         assert np.abs(gram - np.eye(3)).max() < 0.05
-    assert load_trained(tmp_path / "ft").run.train.train_ist == train_ist
+    assert load_trained(run_dir).run.train.train_ist == train_ist
+
+
+def test_finetune_trains_features_and_the_ist(bent, tmp_path):
+    """``train_ist=True`` through the API; ``train_ist=False`` (the default) is fine-tuned through the
+    command line in :func:`test_cli_edit_and_finetune` with the same checks (one compile each)."""
+    _, edited, _, _ = bent
+    result = finetune(edited, tmp_path / "ft", 1, steps_per_epoch=3, train_ist=True, progress=False,
+                      log=lambda s: None)
+    _check_finetuned(edited.scene.points, result.scene.points, result.history, tmp_path / "ft", True)
 
 
 def test_cli_edit_and_finetune(trained, tmp_path, capsys):
@@ -109,3 +122,7 @@ def test_cli_edit_and_finetune(trained, tmp_path, capsys):
                  "--quiet"]) == 0
     assert "test: PSNR" in capsys.readouterr().out
     assert (tmp_path / "f" / "eval_test" / "metrics.json").is_file()
+    # fine-tuning without trainable ISTs (the default): features trained, ISTs untouched
+    history = json.loads((tmp_path / "f" / "metrics.json").read_text())["epochs"]
+    _check_finetuned(load_trained(tmp_path / "e").scene.points, load_trained(tmp_path / "f").scene.points,
+                     history, tmp_path / "f", False)

@@ -23,7 +23,7 @@ from ne_jax.train.sampler import Batch
 RES = 16
 BG = jnp.array([1.0, 1.0, 1.0])
 SAMPLES = "samples"
-_render = jax.jit(render_rays, static_argnums=0)
+_render = _render_chunk  # the executables render_chunked / render_image compile: shared between the tests
 _render_aux = jax.jit(render_rays_with_aux, static_argnums=0)
 
 
@@ -40,7 +40,7 @@ def setup():
                                    normal=smp["normal"].astype(np.float32))
     points = points.replace(feature=jnp.asarray(rng.normal(0, 0.5, points.feature.shape), jnp.float32),
                             conf_logit=jnp.full(points.conf_logit.shape, 2.0))
-    cfg = RenderConfig.tiny()
+    cfg = RenderConfig.tiny(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
     scene = PointScene.build(points, cfg)
     params = init_color_model(cfg.shading, jax.random.key(0))
     camera = Camera.from_fov(S.orbit_cameras(8)[1], RES, RES, S.CAMERA_ANGLE_X)
@@ -162,11 +162,12 @@ def _reference(cfg, params, scene, rays, background):
     return np.asarray(rgb), np.asarray(opacity), np.asarray(dep), weights
 
 
-@pytest.mark.parametrize("segments_per_ray", [None, 8.0])
-def test_matches_a_float64_per_sample_reference(segments_per_ray):
-    cfg = RenderConfig.tiny(integration=SAMPLES, segments_per_ray=segments_per_ray)
-    scene = _two_plane_scene(cfg)
-    params = init_color_model(cfg.shading, jax.random.key(5))
+def test_matches_a_float64_per_sample_reference():
+    """Unpacked (``segments_per_ray=None``) and packed (8.0) against one reference (the budget changes
+    neither the tree nor the segments)."""
+    base = RenderConfig.tiny(integration=SAMPLES)
+    scene = _two_plane_scene(base)
+    params = init_color_model(base.shading, jax.random.key(5))
     xy = np.asarray([[0.05, 0.05], [-0.23, 0.31], [0.4, -0.12], [2.0, 2.0]])  # the last one misses
     origin = np.concatenate([xy, np.full((4, 1), 2.0)], -1)
     direction = np.tile([0.0, 0.0, -1.0], (4, 1))
@@ -176,9 +177,15 @@ def test_matches_a_float64_per_sample_reference(segments_per_ray):
     rays = Rays(origin=jnp.asarray(origin, jnp.float32), direction=jnp.asarray(direction, jnp.float32),
                 near=jnp.zeros(5), far=jnp.full(5, 4.0))
     bg = jnp.asarray([0.2, 0.4, 0.6])
+    ref = _reference(base, params, scene, rays, bg)
+    for segments_per_ray in (None, 8.0):
+        _check_against_reference(base.replace(segments_per_ray=segments_per_ray), params, scene, rays, bg, ref)
+
+
+def _check_against_reference(cfg, params, scene, rays, bg, ref):
     out, aux = _render_aux(cfg, params, scene, rays, bg)
     assert int(out.dropped.sum()) == 0 and int(out.overflow.sum()) == 0
-    ref_rgb, ref_op, ref_depth, ref_w = _reference(cfg, params, scene, rays, bg)
+    ref_rgb, ref_op, ref_depth, ref_w = ref
     assert (np.asarray(out.num_segments)[:3] >= 2).all() and int(out.num_segments[3]) == 0
     assert 0.05 < ref_op[:3].min() and ref_op[4] > 0.05  # the test means something: partly opaque rays
     np.testing.assert_allclose(np.asarray(out.rgb), ref_rgb, atol=2e-5)
@@ -215,7 +222,7 @@ def test_packing_drops_are_counted_then_grown(setup):
     starved = _render(cfg.replace(segments_per_ray=0.05), params, scene, rays, BG)
     lost = int(starved.dropped.sum())
     assert lost > 0 and int(starved.num_segments.sum()) + lost == int(full.num_segments.sum())
-    grown = render_chunked(cfg.replace(segments_per_ray=0.05, chunk=RES * RES), params, scene, rays, BG)
+    grown = render_chunked(cfg.replace(segments_per_ray=0.05), params, scene, rays, BG)  # one chunk
     assert int(grown.dropped.sum()) == 0
     np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(full.rgb), atol=1e-6)
 
@@ -276,12 +283,11 @@ def test_repeated_renders_do_not_recompile(setup):
 # ---------------------------------------------------------------- training step
 
 
-@pytest.mark.parametrize("rule", ["hermite", "stochastic"])
-def test_training_step_runs_with_point_sampling(setup, rule):
+def test_training_step_runs_with_point_sampling(setup):
+    """The stochastic rule only (the step's one rule-dependent path: the render key it splits off);
+    the render's gradients under both rules are checked above."""
     cfg, _, scene, camera = setup
-    cfg = cfg.replace(integration=SAMPLES)
-    if rule == "stochastic":
-        cfg = _stochastic(cfg)
+    cfg = _stochastic(cfg.replace(integration=SAMPLES))
     tcfg = TrainConfig(total_steps=100)
     state = init_train_state(tcfg, cfg, scene.points, jax.random.key(1))
     step_fn = make_train_step(tcfg, cfg)
