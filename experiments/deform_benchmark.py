@@ -74,7 +74,8 @@ def main(argv=None) -> None:
     if not (root / args.scenes[0] / "scene.json").is_file():
         generate_benchmark(root, get_preset(args.preset), args.scenes)
     full = get_run_preset(args.preset)
-    tag = "" if set(names) == set(MAIN_VARIANTS) and len(args.scenes) == len(SCENES) else "_partial"
+    complete = set(MAIN_VARIANTS) <= set(names) and set(args.scenes) == set(SCENES) and args.edits is None
+    tag = ("_all" if len(names) > len(MAIN_VARIANTS) else "") if complete else "_partial"
     out_name = f"deform_benchmark_{args.preset}{tag}"
     records, figure = [], {}
     t_start = time.perf_counter()

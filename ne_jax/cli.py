@@ -11,6 +11,8 @@ Sub-commands:
   edit            move/delete a trained run's points (a benchmark edit by name, or a .npy/.ply file)
                   into an edited model that renders zero-shot (evaluated on the edit's ground truth)
   finetune        fine-tune an edited model on the edited scene's training views
+  morph           morph one trained run into another: both models rendered through intermediate
+                  clouds, blended by the morph ratio, to PNG frames, a video and smoothness figures
 """
 
 from __future__ import annotations
@@ -185,6 +187,33 @@ def _cmd_finetune(args) -> int:
     return 0
 
 
+def _cmd_morph(args) -> int:
+    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.eval import orbit_cameras_for
+    from ne_jax.morph import MorphSettings, morph_models
+    from ne_jax.train.loop import load_trained
+
+    a, b = load_trained(args.run_a), load_trained(args.run_b)
+    scene_dir = _need_scene(Path(args.scene) if args.scene else a.scene_dir, args.run_a)
+    split = load_split(scene_dir, args.split)
+    if not 0 <= args.view < split.num_views:
+        raise ValueError(f"--view: expected a view of the {args.split} split in [0, {split.num_views}), found {args.view}")
+    if args.scale < 1:
+        raise ValueError(f"--scale: expected a downscale factor >= 1, found {args.scale}")
+    camera = split.camera(args.view).scaled(args.scale) if args.scale > 1 else split.camera(args.view)
+    steps = args.steps if not args.intermediate else len(args.intermediate) + 2
+    if args.orbit:
+        camera = orbit_cameras_for(camera, steps, args.elevation)
+    settings = MorphSettings(steps=args.steps, seed=args.seed, video=f"morph.{args.format}", fps=args.fps)
+    report, _ = morph_models(a, b, args.out, camera, settings, args.intermediate, args.background,
+                             progress=not args.quiet, labels=(str(args.run_a), str(args.run_b)))
+    sm = report["smoothness"]
+    print(f"morph: {report['frames']} frames of {report['points']['matched']} matched points in "
+          f"{report['seconds']:.1f} s; frame-to-frame change mean {sm['mean']:.4f}, max {sm['max']:.4f}, "
+          f"path ratio {sm['path_ratio']:.2f} -> {args.out} (frames/, morph.{args.format}, strip.png, morph.json)")
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from ne_jax.data.benchmark import generate_benchmark
     from ne_jax.eval import orbit_cameras_for, render_views, write_video
@@ -307,6 +336,27 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--no-eval", action="store_true", help="skip evaluating the test views")
     ft.add_argument("--quiet", action="store_true", help="no progress bars")
     ft.set_defaults(func=_cmd_finetune)
+
+    mo = sub.add_parser("morph", help="morph one trained run into another (blended rendering along a path)")
+    mo.add_argument("run_a", help="the run the morph starts from")
+    mo.add_argument("run_b", help="the run the morph ends at")
+    mo.add_argument("--out", required=True, help="output folder (frames/, morph.mp4, strip.png, morph.json)")
+    mo.add_argument("--steps", type=int, default=24, help="frames, both ends included (default: 24)")
+    mo.add_argument("--intermediate", nargs="+", default=None, metavar="CLOUD",
+                    help="intermediate clouds from another generator (.ply/.npy, ordered from A to B, unindexed, "
+                         "each with the matched number of points); default: straight lines along the matching")
+    mo.add_argument("--scene", default=None, help="scene folder for the camera (default: run A's)")
+    mo.add_argument("--split", default="test", choices=SCENE_SPLITS)
+    mo.add_argument("--view", type=int, default=0, help="the split's view to render from (default: 0)")
+    mo.add_argument("--scale", type=int, default=1, help="downscale the camera by this factor (default: 1)")
+    mo.add_argument("--orbit", action="store_true", help="circle the camera once over the morph")
+    mo.add_argument("--elevation", type=float, default=25.0, help="orbit elevation in degrees")
+    mo.add_argument("--format", default="mp4", choices=["mp4", "gif"])
+    mo.add_argument("--fps", type=float, default=12.0)
+    mo.add_argument("--background", default=None, choices=["white", "black"], help="default: run A's")
+    mo.add_argument("--seed", type=int, default=0, help="seed of the subsample when the clouds differ in size")
+    mo.add_argument("--quiet", action="store_true", help="no progress bar")
+    mo.set_defaults(func=_cmd_morph)
     return parser
 
 

@@ -18,15 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ne_jax.atomic import atomic_directory, atomic_write_text
 from ne_jax.data.synthetic import SCENES, get_scene
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import Edit
 from ne_jax.edit.targets import EditError, EditSource
 from ne_jax.render.renderer import PointScene
-from ne_jax.train.checkpoint import config_to_json, save_checkpoint
-from ne_jax.train.loop import (CHECKPOINT_DIR, CONFIG_FILE, METRICS_FILE, RunConfig, StartFrom, TrainedModel,
-                               TrainResult, train)
+from ne_jax.train.loop import RunConfig, StartFrom, TrainedModel, TrainResult, save_trained, train
 
 
 def _scene_meta(scene_dir: Path | None) -> dict:
@@ -84,14 +81,9 @@ def edit_model(model: TrainedModel, edit: EditSource | str, out_dir: str | Path 
                           meta=dict(model.meta))
     report = {"edit": label, "ist": ist, **report}
     if out_dir is not None:
-        metrics = {"scene_dir": str(Path(truth).resolve()) if truth is not None else None, "edit": report,
-                   "source": {"scene_dir": str(model.scene_dir) if model.scene_dir else None,
-                              "step": int(model.state.step)}, "epochs": []}
-        with atomic_directory(out_dir) as tmp:
-            atomic_write_text(tmp / CONFIG_FILE, json.dumps(config_to_json(run), indent=2) + "\n")
-            atomic_write_text(tmp / METRICS_FILE, json.dumps(metrics, indent=2) + "\n")
-            save_checkpoint(tmp / CHECKPOINT_DIR, state, points, run.train, run.render,
-                            extra={"history": [], "edit": report}, keep=1)
+        source = {"scene_dir": str(model.scene_dir) if model.scene_dir else None, "step": int(model.state.step)}
+        save_trained(edited, out_dir, {"edit": report, "source": source, "epochs": []},
+                     extra={"history": [], "edit": report})
     return edited, report
 
 

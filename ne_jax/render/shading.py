@@ -39,6 +39,11 @@ orientation and predicted-vs-point losses need it. Point normals from Open3D are
 reflection is invariant to the normal's sign, ``n.d`` is not (orientation is the geometry's job).
 
 Declared effects are static: a disabled effect's parameters do not exist and its ops are not traced.
+
+Extension point: ``shade`` and ``background_color`` accept, in place of a ``ShadingConfig``, any
+hashable object with ``effects`` (``uses_point_normals``, ``uses_ist``), ``shade(params, ...)`` and
+``background_color(params, ...)`` methods; scene morphing's
+:class:`~ne_jax.morph.blend.BlendedShading` blends two colour models this way.
 """
 
 from __future__ import annotations
@@ -295,6 +300,8 @@ def shade(cfg: ShadingConfig, params: dict, feature: jax.Array, normal: jax.Arra
             ``cfg.effects.uses_ist``). pred_normal_mix: optional scalar in ``[0, 1]``, warm-up blend of
             the predicted normal into the reflection normal (point normals only).
     """
+    if not isinstance(cfg, ShadingConfig):  # a stand-in with its own shade, e.g. morphing's BlendedShading
+        return cfg.shade(params, feature, normal, view_dir, ist, pred_normal_mix)
     fx = cfg.effects
     if fx.uses_point_normals and normal is None:
         raise ValueError("this scene reflects about point normals: pass `normal`")
@@ -310,6 +317,8 @@ def background_color(cfg: ShadingConfig, params: dict, origin: jax.Array, direct
                      constant: jax.Array | None = None) -> jax.Array:
     """Background colour per ray ``[..., 3]``: the learned sphere (``origin, direction [..., 3]``;
     ``constant`` unused) or ``constant [3]`` broadcast (required for ``"constant"``)."""
+    if not isinstance(cfg, ShadingConfig):  # a stand-in, e.g. morphing's BlendedShading
+        return cfg.background_color(params, origin, direction, constant)
     if cfg.effects.background == "sphere":
         return BackgroundSphere(cfg).apply({"params": params["background"]}, origin, direction)
     if constant is None:

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from ne_jax.atomic import atomic_write_text
+from ne_jax.atomic import atomic_directory, atomic_write_text
 from ne_jax.data.nerf_synthetic import SceneSplit, load_split
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTreeConfig
@@ -448,6 +448,22 @@ def load_trained(run_dir: str | Path) -> TrainedModel:
                         meta=meta)
 
 
+def save_trained(model: TrainedModel, run_dir: str | Path, metrics: dict | None = None,
+                 extra: dict | None = None) -> Path:
+    """Write ``model`` as a run directory that :func:`load_trained` reads (``config.json``,
+    ``metrics.json`` — ``metrics`` plus the model's ``scene_dir`` — and one checkpoint with ``extra``),
+    atomically: the directory appears complete or not at all."""
+    metrics = {"scene_dir": str(Path(model.scene_dir).resolve()) if model.scene_dir is not None else None,
+               **(metrics or {})}
+    points = model.state.point_state(model.scene.points)
+    with atomic_directory(run_dir) as tmp:
+        atomic_write_text(tmp / CONFIG_FILE, json.dumps(config_to_json(model.run), indent=2) + "\n")
+        atomic_write_text(tmp / METRICS_FILE, json.dumps(_json_safe(metrics), indent=2, allow_nan=False) + "\n")
+        save_checkpoint(tmp / CHECKPOINT_DIR, model.state, points, model.run.train, model.run.render,
+                        extra=extra, keep=1)
+    return Path(run_dir)
+
+
 def fit_segment_budget(render: RenderConfig, scene: PointScene, rays, headroom: float = 1.25) -> RenderConfig:
     """``render`` with a packing budget (``segments_per_ray``) that holds ``headroom`` times the mean
     segments per ray of ``rays`` in ``scene``: the preset's budget doubled as often as needed, never
@@ -487,4 +503,4 @@ def _epoch_line(r: dict) -> str:
 
 __all__ = ["CONFIG_FILE", "INIT_SOURCES", "METRICS_FILE", "PRESETS", "InitConfig", "RunConfig", "StartFrom", "TrainResult",
            "TrainedModel", "TrainingDiverged", "get_run_preset", "initial_cloud", "initial_points", "load_run_config",
-           "load_trained", "train"]
+           "load_trained", "save_trained", "train"]
