@@ -11,12 +11,15 @@ for each edit and variant: :func:`~ne_jax.edit.model.edit_model` (zero-shot, sco
 ground truth) and :func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` epochs on the edited
 scene's training views (scored again). Writes ``experiments/results/deform_benchmark_<preset>.json``
 and ``.md`` after every (scene, edit), and a figure grid ``deform_benchmark_<preset>.png`` (test view
-0: ground truth, then each variant zero-shot).
+0: ground truth, then each variant zero-shot). Every record and its figure image are cached in
+``<runs>/<scene>/records/<edit>/``: a re-run, or one with more variants, measures only what is missing.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
+import json
 import os
 import platform
 import time
@@ -79,14 +82,18 @@ def main(argv=None) -> None:
     out_name = f"deform_benchmark_{args.preset}{tag}"
     records, figure = [], {}
     t_start = time.perf_counter()
+    ft_tag = "zero" if args.no_finetune else f"ft{args.finetune_epochs}x{args.finetune_steps or full.steps_per_epoch}"
     for scene in args.scenes:
         print(f"== {scene}", flush=True)
         scene_dir = root / scene
         models = {}
-        for v in variants:
+
+        def model_of(v):  # trained (or read back) only when a record needs it
             run = variant_run(full, v)
             if run.name not in models:
                 models[run.name] = trained_model(run, scene_dir, runs / scene / "models" / run.name, print)
+            return models[run.name]
+
         edits = [e for e in get_scene(scene).edits if args.edits is None or e in args.edits]
         for edit in edits:
             truth = scene_dir / "edits" / edit
@@ -94,31 +101,54 @@ def main(argv=None) -> None:
             figure[(scene, edit, "ground truth")] = composite(split.images[:1], full.background)[0]
             finetuned = {}
             for v in variants:
-                model = models[variant_run(full, v).name]
-                t0 = time.perf_counter()
-                edited, rep = edit_model(model, edit, ist=v.ist, scene_dir=truth)
-                zero, image = score(edited, v, truth)
+                cache = runs / scene / "records" / edit / f"{v.name}-{ft_tag}"
+                if cache.with_suffix(".json").is_file():  # measured by an earlier run with the same settings
+                    rec = json.loads(cache.with_suffix(".json").read_text(encoding="utf-8"))
+                    image = np.load(cache.with_suffix(".npy"))
+                else:
+                    rec, image = measure(args, runs, scene, edit, truth, v, model_of(v), finetuned)
+                    cache.parent.mkdir(parents=True, exist_ok=True)
+                    atomic_write_bytes(cache.with_suffix(".npy"), _npy_bytes(image))
+                    atomic_write_json(cache.with_suffix(".json"), rec)
                 figure[(scene, edit, v.label)] = image
-                rec = {"scene": scene, "edit": edit, "variant": v.name, "zero_shot": zero,
-                       "edit_report": {k: rep[k] for k in ("moved", "deleted", "good", "filled", "identity")},
-                       "zero_shot_seconds": round(time.perf_counter() - t0, 1)}
-                if not args.no_finetune:
-                    key = (model.run.name, v.ist)  # Naive Plotting plots the fine-tuned model without IST
-                    t0 = time.perf_counter()
-                    if key not in finetuned:
-                        ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}"
-                        result = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
-                                          progress=False, log=lambda s: None)
-                        finetuned[key] = TrainedModel(run=result.run, state=result.state, scene=result.scene,
-                                                      scene_dir=truth, meta={})
-                    rec["finetune"] = score(finetuned[key], v, truth)[0]
-                    rec["finetune_seconds"] = round(time.perf_counter() - t0, 1)
                 records.append(rec)
                 ft = rec.get("finetune", {}).get("psnr", float("nan"))
-                print(f"  {edit:>12} {v.name:>22}: zero-shot {zero['psnr']:.2f} dB, fine-tuned {ft:.2f} dB", flush=True)
+                print(f"  {edit:>12} {v.name:>22}: zero-shot {rec['zero_shot']['psnr']:.2f} dB, "
+                      f"fine-tuned {ft:.2f} dB", flush=True)
             write_results(out_name, args, full, records, variants, time.perf_counter() - t_start)
             write_figure(out_name, figure, variants)
     print((RESULTS / f"{out_name}.md").read_text())
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
+
+
+def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: TrainedModel, finetuned: dict
+            ) -> tuple[dict, np.ndarray]:
+    """One record: edit ``model`` for variant ``v``, score zero-shot, fine-tune (shared by variants
+    with the same model and IST setting through ``finetuned``) and score again."""
+    t0 = time.perf_counter()
+    edited, rep = edit_model(model, edit, ist=v.ist, cfg=v.edit, scene_dir=truth)
+    zero, image = score(edited, v, truth)
+    rec = {"scene": scene, "edit": edit, "variant": v.name, "zero_shot": zero,
+           "edit_report": {k: rep[k] for k in ("moved", "deleted", "good", "filled", "identity")},
+           "zero_shot_seconds": round(time.perf_counter() - t0, 1)}
+    if not args.no_finetune:
+        key = (model.run.name, v.ist, v.edit)  # Naive Plotting plots the fine-tuned model without IST
+        t0 = time.perf_counter()
+        if key not in finetuned:
+            kept = "" if v.edit.reestimate_normals else "-keptnormals"
+            ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}{kept}"
+            result = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
+                              progress=False, log=lambda s: None)
+            finetuned[key] = TrainedModel(run=result.run, state=result.state, scene=result.scene,
+                                          scene_dir=truth, meta={})
+        rec["finetune"] = score(finetuned[key], v, truth)[0]
+        rec["finetune_seconds"] = round(time.perf_counter() - t0, 1)
+    return rec, image
 
 
 def write_results(out_name: str, args, full, records: list, variants, seconds: float) -> None:

@@ -19,6 +19,9 @@ variant                     model                                               
 ``no_normals``              reflect about the predicted normal                  yes    rays
 ``traditional_color``       the traditional colour head (no Phong/Ref-NeRF)     yes    rays
 ``half_points``             half the initial points                             yes    rays
+``no_ist_kept_normals``     the full model; the edit keeps every point's        no     rays
+                            original normal (analysis: what re-estimating the
+                            normals on the edited cloud contributes)
 ==========================  ==================================================  =====  ========
 
 Fine-tuning Naive Plotting fine-tunes the full model without IST through the ray renderer and then
@@ -30,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable
 
+from ne_jax.edit.apply import EditConfig
 from ne_jax.render.naive import naive_plot_image
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.train.loop import RunConfig
@@ -47,6 +51,8 @@ class Variant:
     """Whether the edited model declares the IST effect."""
     naive: bool = False
     """Score by Naive Plotting instead of the ray renderer."""
+    edit: EditConfig = EditConfig()
+    """How the edit is applied to this variant's model."""
 
     @property
     def own_model(self) -> bool:
@@ -95,6 +101,8 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("no_normals", "- normal vectors", _effects(point_normals=False), ist=True),
     Variant("traditional_color", "- Phong + traditional colour", _effects(color_head="traditional", specular=False), ist=True),
     Variant("half_points", "- 50% points", _half_points, ist=True),
+    Variant("no_ist_kept_normals", "w/o IST, normals not re-estimated", None, ist=False,
+            edit=EditConfig(reestimate_normals=False)),
 )}
 """Every variant by name (Table 1's rows first, then the ablation rows)."""
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ne_jax.data.ply import write_ply
-from ne_jax.edit.apply import apply_edit
+from ne_jax.edit.apply import EditConfig, apply_edit
 from ne_jax.edit.deformations import Edit, delete_part, halfspace, rotation_matrix
 from ne_jax.edit.targets import EditError
 from ne_jax.geometry.points import PointState
@@ -44,6 +44,14 @@ def test_function_edit_moves_points_and_keeps_parameters(points):
     # normals re-estimated and oriented like the originals (outward), not Open3D's arbitrary signs
     np.testing.assert_allclose(np.asarray(edited.normal)[alive], np.asarray(points.normal)[alive] @ R1.T, atol=1e-4)
     assert report["moved"] == N and report["deleted"] == 0 and report["good"] == N
+
+
+def test_kept_normals_switch_leaves_every_normal_as_it_was(points):
+    """The analysis switch ``reestimate_normals=False``: positions and IST as usual, normals untouched."""
+    edited = apply_edit(points, rotation_edit(R1), EditConfig(reestimate_normals=False))
+    alive = np.asarray(points.alive)
+    np.testing.assert_array_equal(np.asarray(edited.normal)[alive], np.asarray(points.normal)[alive])
+    np.testing.assert_allclose(np.asarray(edited.ist)[alive], np.broadcast_to(R1.T, (N, 3, 3)), atol=1e-5)
 
 
 def test_deletion_flips_alive_only(points):
