@@ -2,7 +2,8 @@
 # One entry point that sets itself up on a fresh machine (Python >= 3.11), then runs:
 #   bash run.sh demo [flags]   the main job on the built-in default scene (see `ne-jax demo --help`)
 #   bash run.sh test [flags]   the test suite (flags go to pytest), then, as a second process, the
-#                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases);
+#                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
+#                              then the notebooks in their fast mode (pytest -m notebook tests/notebooks);
 #                              with explicit test paths (bash run.sh test tests/foo) only those run
 #   bash run.sh <cmd> [flags]  any other `ne-jax` sub-command
 # The virtual environment lives in .venv and is re-installed only when pyproject.toml changes.
@@ -68,6 +69,8 @@ case "$cmd" in
     done
     .venv/bin/python -m pytest "$@"
     echo "run.sh: float64 step: JAX_ENABLE_X64=1 pytest tests/hard_cases" >&2
-    JAX_ENABLE_X64=1 exec .venv/bin/python -m pytest tests/hard_cases -q ;;
+    JAX_ENABLE_X64=1 .venv/bin/python -m pytest tests/hard_cases -q
+    echo "run.sh: notebook step: pytest -m notebook tests/notebooks (each notebook in its fast mode)" >&2
+    exec .venv/bin/python -m pytest tests/notebooks -m notebook -q ;;
   *)    exec .venv/bin/ne-jax "$cmd" "$@" ;;
 esac
