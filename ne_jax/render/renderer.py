@@ -51,8 +51,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.experimental import checkify
 from tqdm.auto import tqdm
 
+from ne_jax.checks import stage_check, throw
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
@@ -97,6 +99,12 @@ class RenderConfig:
     quadrature rule, shade once per segment. ``"samples"``: the paper's ablation "- integration +
     traditional point sampling" — shade each of the segment's ``s`` samples on its own and composite
     it as its own ``1/s`` sub-interval of the segment (see the module docstring)."""
+
+    checks: bool = False
+    """Runtime finiteness checks (:mod:`ne_jax.checks`): the first NaN / Inf raises
+    :class:`~ne_jax.checks.NonFiniteError` naming the stage that produced it (``traversal``,
+    ``interpolation``, ``shading``, ``compositing``). Needs ``checkify`` around the render
+    (:func:`render_chunked` and the training step do it); off: nothing traced, no cost."""
 
     def __post_init__(self):
         if self.integration not in INTEGRATIONS:
@@ -257,6 +265,8 @@ def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, back
     tcfg = cfg.tree
     tree = scene.tree
     seg = intersect(tree, rays, tcfg)
+    stage_check(cfg.checks, "traversal", origin=rays.origin, direction=rays.direction)
+    stage_check(cfg.checks, "traversal", where=seg.valid, t_lo=seg.t_lo, t_hi=seg.t_hi)
     r, m = seg.valid.shape
     budget = cfg.segment_budget(r)
     flat = lambda a: a.reshape((r * m,) + a.shape[2:])  # noqa: E731
@@ -295,6 +305,7 @@ def _composite_out(cfg: RenderConfig, params, rays: Rays, background, seg, keep,
     :class:`SegmentAux` of the slots."""
     bg = background_color(cfg.shading, params, rays.origin, rays.direction, background)
     comp = composite(sigma, rgb, lengths, valid, depth_t, bg, normals=normals)
+    stage_check(cfg.checks, "compositing", rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth)
     normal_map = comp.normal if comp.normal is not None else jnp.zeros_like(comp.rgb)
     out = RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
                     num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
@@ -322,7 +333,9 @@ def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direct
     needed = _values_to_interpolate(scene.points, effects, aux)
     # Interpolation and quadrature fused (both linear): segment means straight from the candidates.
     means = knn_integrate(scene.points, scene.tree, pos, node, w, needed, cfg.tree, cfg.exact_knn)
+    stage_check(cfg.checks, "interpolation", **{k: means.get(k) for k in ("feature", "normal", "ist")})
     out = shade(cfg.shading, params, means["feature"], means.get("normal"), direction, means.get("ist"))
+    stage_check(cfg.checks, "shading", sigma=out.sigma, rgb=out.rgb)
     extra = None
     if aux:
         extra = {"pred_normal": out.pred_normal,
@@ -349,8 +362,10 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
     needed = _values_to_interpolate(scene.points, effects, aux)
     vals, _ = knn_interpolate(scene.points, scene.tree, pos, flat(seg.node)[slot], cfg.tree, cfg.exact_knn,
                               needed)  # [B, S, ...]
+    stage_check(cfg.checks, "interpolation", **{k: vals.get(k) for k in ("feature", "normal", "ist")})
     view = jnp.broadcast_to(direction[:, None, :], pos.shape)
     sh = shade(cfg.shading, params, vals["feature"], vals.get("normal"), view, vals.get("ist"))
+    stage_check(cfg.checks, "shading", sigma=sh.sigma, rgb=sh.rgb)
     sub_len = jnp.where(inside, (t_hi - t_lo)[:, None] / tree.spacing / s_count, 0.0)  # [B, S]
 
     def unpack(v):  # packed [B, S, ...] -> [R, M * S, ...], zeros in slots without a live segment
@@ -373,6 +388,22 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
 @functools.partial(jax.jit, static_argnums=0)
 def _render_chunk(cfg: RenderConfig, params, scene, rays, background) -> RenderOut:
     return render_rays(cfg, params, scene, rays, background)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _render_chunk_checked(cfg: RenderConfig, params, scene, rays, background):
+    """:func:`_render_chunk` under ``checkify`` (``cfg.checks`` on): ``(error, RenderOut)``."""
+    render = functools.partial(render_rays, cfg)
+    return checkify.checkify(render, errors=checkify.user_checks)(params, scene, rays, background)
+
+
+def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, background) -> RenderOut:
+    """:func:`_render_chunk`; with ``cfg.checks`` the checked one, raising ``NonFiniteError``."""
+    if not cfg.checks:
+        return _render_chunk(cfg, params, scene, rays, background)
+    err, out = _render_chunk_checked(cfg, params, scene, rays, background)
+    throw(err)
+    return out
 
 
 def grown_config(cfg: RenderConfig, out: RenderOut) -> RenderConfig | None:
@@ -419,13 +450,13 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
         sl = slice(s, s + chunk)
         part = jax.tree_util.tree_map(lambda a: a[sl], padded)
         bg = background[sl] if per_ray_bg else background
-        out = _render_chunk(cfg, params, scene, part, bg)
+        out = _render_chunk_maybe_checked(cfg, params, scene, part, bg)
         for _ in range(max_grow):
             bigger = grown_config(cfg, out)
             if bigger is None:
                 break
             cfg = bigger
-            out = _render_chunk(cfg, params, scene, part, bg)
+            out = _render_chunk_maybe_checked(cfg, params, scene, part, bg)
         outs.append(out)
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *outs)
 

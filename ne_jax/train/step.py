@@ -18,6 +18,12 @@ when the gradient w.r.t. the trainables is -- with every ``finite/<term>`` True,
 the render's backward pass, which all rendered terms share (it cannot be attributed to one term
 without a backward pass per term); ``finite/update`` is False when the updated trainables are not
 finite (e.g. a parameter that was already NaN, which has a zero gradient where it is unused).
+
+Runtime checks (``render_cfg.checks``, :mod:`ne_jax.checks`): the step runs under ``checkify`` and
+the first non-finite value raises :class:`~ne_jax.checks.NonFiniteError` naming its stage: the
+render's (``traversal``, ``interpolation``, ``shading``, ``compositing``), then ``loss/<term>``
+(the term or its gradient w.r.t. the render's outputs), ``backward`` (the gradient w.r.t. the
+trainables), ``update`` (the updated trainables). Off (default): nothing traced, the guard above.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from ne_jax.checks import checked, stage_check
 from ne_jax.render.renderer import PointScene, RenderConfig, SegmentAux, render_rays_with_aux
 from ne_jax.train.losses import loss_terms
 from ne_jax.train.sampler import Batch
@@ -84,11 +91,15 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
         # per-term gradients w.r.t. the render's outputs: separate VJPs of the (cheap) loss part, so a
         # NaN in one term never leaks into another's flag through a 0 * NaN
         inter_grads = {k: jax.grad(lambda x, k=k: loss_part(x, fixed)[k])(inter) for k in terms}
+        for k in terms:
+            stage_check(render_cfg.checks, f"loss/{k}", **{k: terms[k], "grad": inter_grads[k]})
         (inter_cot,) = loss_vjp({k: jnp.asarray(w, terms[k].dtype) for k, w in weights.items()})
         (grads,) = render_vjp(inter_cot)
+        stage_check(render_cfg.checks, "backward", grad=grads)
         total = sum(jnp.asarray(w, terms[k].dtype) * terms[k] for k, w in weights.items())
         updates, opt_state = optimizer.update(grads, state.opt_state, trainables)
         new_trainables = optax.apply_updates(trainables, updates)
+        stage_check(render_cfg.checks, "update", trainables=new_trainables)
 
         term_ok = {k: jnp.isfinite(v) & _all_finite(inter_grads[k]) for k, v in terms.items()}
         grad_ok = _all_finite(grads)
@@ -116,7 +127,7 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
         metrics["dropped"] = jnp.sum(out.dropped)
         return new_state, metrics
 
-    return jax.jit(step_fn)
+    return checked(step_fn) if render_cfg.checks else jax.jit(step_fn)
 
 
 __all__ = ["make_train_step"]
