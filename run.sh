@@ -3,6 +3,7 @@
 #   bash run.sh demo [flags]   the main job on the built-in default scene (see `ne-jax demo --help`)
 #   bash run.sh test [flags]   the test suite (flags go to pytest), then, as a second process, the
 #                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
+#                              the sharding tests on 4 forced host devices (pytest -m multidevice tests/devices),
 #                              then the notebooks in their fast mode (pytest -m notebook tests/notebooks);
 #                              with explicit test paths (bash run.sh test tests/foo) only those run
 #   bash run.sh <cmd> [flags]  any other `ne-jax` sub-command
@@ -70,6 +71,8 @@ case "$cmd" in
     .venv/bin/python -m pytest "$@"
     echo "run.sh: float64 step: JAX_ENABLE_X64=1 pytest tests/hard_cases" >&2
     JAX_ENABLE_X64=1 .venv/bin/python -m pytest tests/hard_cases -q
+    echo "run.sh: multi-device step: 4 forced host devices, pytest -m multidevice tests/devices" >&2
+    XLA_FLAGS="${XLA_FLAGS:-} --xla_force_host_platform_device_count=4" .venv/bin/python -m pytest tests/devices -m multidevice -q
     echo "run.sh: notebook step: pytest -m notebook tests/notebooks (each notebook in its fast mode)" >&2
     exec .venv/bin/python -m pytest tests/notebooks -m notebook -q ;;
   *)    exec .venv/bin/ne-jax "$cmd" "$@" ;;

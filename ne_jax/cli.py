@@ -253,6 +253,10 @@ def _cmd_demo(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ne-jax", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    multi = parser.add_argument_group("multi-host (jax.distributed; one process per host, the same flags on each)")
+    multi.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="address of process 0")
+    multi.add_argument("--num-processes", type=int, default=1, help="number of processes (hosts)")
+    multi.add_argument("--process-id", type=int, default=0, help="this process's index, 0 .. N-1")
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="run the main job on the built-in default scene")
@@ -363,6 +367,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if args.coordinator is not None or args.num_processes != 1:
+            from ne_jax.devices import initialize_distributed
+
+            initialize_distributed(args.coordinator or "", args.num_processes, args.process_id)
         return args.func(args)
     except (KeyError, ValueError, FileNotFoundError) as e:  # user errors: one clear line, no traceback
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e

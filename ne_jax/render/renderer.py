@@ -52,10 +52,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 from jax.experimental import checkify
+from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from ne_jax.checks import stage_check, throw
 from ne_jax.data.rays import Camera, Rays, camera_rays
+from ne_jax.devices import default_mesh, padded_size, shard_rays
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
 from ne_jax.geometry.knn import knn_integrate, knn_interpolate
@@ -385,9 +387,13 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
                           mask(unpack(sub_len)), unpack(t), normal_full, extra)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _render_chunk(cfg: RenderConfig, params, scene, rays, background) -> RenderOut:
-    return render_rays(cfg, params, scene, rays, background)
+@functools.partial(jax.jit, static_argnums=0, static_argnames="mesh")
+def _render_chunk(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh | None = None) -> RenderOut:
+    """One chunk of rays split over ``mesh`` (default: :func:`~ne_jax.devices.default_mesh`; the
+    chunk's size a multiple of the mesh's), the scene and ``params`` replicated."""
+    mesh = default_mesh() if mesh is None else mesh
+    bg = jnp.broadcast_to(jnp.asarray(background, rays.origin.dtype), (rays.num_rays, 3))
+    return shard_rays(functools.partial(render_rays, cfg), mesh, num_replicated=2)(params, scene, rays, bg)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -397,10 +403,11 @@ def _render_chunk_checked(cfg: RenderConfig, params, scene, rays, background):
     return checkify.checkify(render, errors=checkify.user_checks)(params, scene, rays, background)
 
 
-def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, background) -> RenderOut:
-    """:func:`_render_chunk`; with ``cfg.checks`` the checked one, raising ``NonFiniteError``."""
+def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh) -> RenderOut:
+    """:func:`_render_chunk`; with ``cfg.checks`` the checked one (on one device), raising
+    ``NonFiniteError``."""
     if not cfg.checks:
-        return _render_chunk(cfg, params, scene, rays, background)
+        return _render_chunk(cfg, params, scene, rays, background, mesh=mesh)
     err, out = _render_chunk_checked(cfg, params, scene, rays, background)
     throw(err)
     return out
@@ -424,8 +431,11 @@ def grown_config(cfg: RenderConfig, out: RenderOut) -> RenderConfig | None:
 
 
 def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
-                   progress: bool | None = None, desc: str = "render", max_grow: int = 4) -> RenderOut:
-    """Render any number of rays in compiled chunks of ``cfg.chunk`` (the last one padded).
+                   progress: bool | None = None, desc: str = "render", max_grow: int = 4,
+                   mesh: Mesh | None = None) -> RenderOut:
+    """Render any number of rays in compiled chunks of ``cfg.chunk`` (the last one padded), each
+    chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
+    chunk is rounded up to a multiple of the mesh's size).
 
     A chunk that lost segments is rendered again with grown capacities (:func:`grown_config`, at
     most ``max_grow`` times; later chunks keep the grown config, so it compiles once more, not per
@@ -435,7 +445,8 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     if cfg.quadrature.rule == "stochastic":
         raise ValueError("render_chunked renders deterministically; the 'stochastic' rule needs render_rays with a key")
     n = rays.num_rays
-    chunk = cfg.chunk
+    mesh = default_mesh() if mesh is None else mesh
+    chunk = padded_size(cfg.chunk, mesh)
     pad = (-n) % chunk
     padded = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), rays)
     background = jnp.asarray(background, rays.origin.dtype)
@@ -450,21 +461,22 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
         sl = slice(s, s + chunk)
         part = jax.tree_util.tree_map(lambda a: a[sl], padded)
         bg = background[sl] if per_ray_bg else background
-        out = _render_chunk_maybe_checked(cfg, params, scene, part, bg)
+        out = _render_chunk_maybe_checked(cfg, params, scene, part, bg, mesh)
         for _ in range(max_grow):
             bigger = grown_config(cfg, out)
             if bigger is None:
                 break
             cfg = bigger
-            out = _render_chunk_maybe_checked(cfg, params, scene, part, bg)
+            out = _render_chunk_maybe_checked(cfg, params, scene, part, bg, mesh)
         outs.append(out)
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *outs)
 
 
 def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
-                 near: float, far: float, progress: bool | None = None) -> RenderOut:
-    """Render every pixel of ``camera``; fields are reshaped to images (``rgb`` ``[H, W, 3]``)."""
+                 near: float, far: float, progress: bool | None = None, mesh: Mesh | None = None) -> RenderOut:
+    """Render every pixel of ``camera`` (rays split over ``mesh``, see :func:`render_chunked`);
+    fields are reshaped to images (``rgb`` ``[H, W, 3]``)."""
     rays = camera_rays(camera, near, far)
-    out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image")
+    out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image", mesh=mesh)
     h, w = camera.height, camera.width
     return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out)

@@ -29,12 +29,16 @@ trainables), ``update`` (the updated trainables). Off (default): nothing traced,
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
 import optax
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from ne_jax.checks import checked, stage_check
+from ne_jax.devices import RAYS, default_mesh, shard_rays
 from ne_jax.render.renderer import PointScene, RenderConfig, SegmentAux, render_rays_with_aux
 from ne_jax.train.losses import loss_terms
 from ne_jax.train.sampler import Batch
@@ -46,8 +50,11 @@ def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
 
 
-def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
-    """The jitted ``step_fn(state, scene, batch) -> (state, metrics)``.
+def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | None = None):
+    """The jitted ``step_fn(state, scene, batch) -> (state, metrics)``, the batch's rays split over
+    ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the batch size a multiple of its size):
+    each device renders its rays and differentiates its share of the losses, the terms and
+    gradients are averaged over the devices (``pmean``), and the replicated Adam update follows.
 
     Args (of ``step_fn``):
         state: :class:`~ne_jax.train.state.TrainState`.
@@ -60,19 +67,23 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
     used), ``grad_norm``, ``opacity`` (mean over the batch), ``overflow``/``dropped`` (segments
     lost to traversal capacities / the packing budget, summed over the batch; should be 0).
     """
+    mesh = default_mesh() if mesh is None else mesh
     weights = cfg.loss.weights()
     optimizer = cfg.optimizer()
     schedule = cfg.schedule()
     stochastic = render_cfg.quadrature.rule == "stochastic"
 
-    def step_fn(state: TrainState, scene: PointScene, batch: Batch):
-        key, k_render = jax.random.split(state.key)
-        target = batch.rays.target[:, :3]
+    def local(trainables, scene: PointScene, k_render, rays, background, reduce: bool):
+        """Loss terms, their finiteness, gradients and batch statistics of ``rays`` (one device's
+        share when ``reduce``: then averaged / summed over the mesh's ``"rays"`` axis)."""
+        target = rays.target[:, :3]
+        if reduce and stochastic:  # each device jitters its own rays
+            k_render = jax.random.fold_in(k_render, jax.lax.axis_index(RAYS))
 
         def render_part(trainables):  # trainables -> the float inputs of the losses
             pts = scene.points.replace(**trainables["points"])
             out, aux = render_rays_with_aux(render_cfg, trainables["params"], scene.replace(points=pts),
-                                            batch.rays, batch.background, k_render if stochastic else None)
+                                            rays, background, k_render if stochastic else None)
             inter = {f.name: getattr(aux, f.name) for f in dataclasses.fields(aux) if f.name != "valid"}
             inter.update(rgb=out.rgb, conf_logit=pts.conf_logit)
             if "ist" in trainables["points"]:
@@ -85,7 +96,6 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
             pts = pts.replace(conf_logit=inter["conf_logit"], **({"ist": inter["ist"]} if "ist" in inter else {}))
             return loss_terms(cfg.loss, out.replace(rgb=inter["rgb"]), aux, target, pts)
 
-        trainables = state.trainables
         inter, render_vjp, fixed = jax.vjp(render_part, trainables, has_aux=True)
         terms, loss_vjp = jax.vjp(lambda x: loss_part(x, fixed), inter)
         # per-term gradients w.r.t. the render's outputs: separate VJPs of the (cheap) loss part, so a
@@ -96,38 +106,68 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig):
         (inter_cot,) = loss_vjp({k: jnp.asarray(w, terms[k].dtype) for k, w in weights.items()})
         (grads,) = render_vjp(inter_cot)
         stage_check(render_cfg.checks, "backward", grad=grads)
+        term_ok = {k: jnp.isfinite(v) & _all_finite(inter_grads[k]) for k, v in terms.items()}
+        out = fixed[0]
+        mse = terms["photometric"] if "photometric" in terms else jnp.mean(jnp.square(out.rgb - target))
+        stats = {"mse": mse, "opacity": jnp.mean(out.opacity)}
+        counts = {"overflow": jnp.sum(out.overflow), "dropped": jnp.sum(out.dropped)}
+        if reduce:  # every term is a mean over rays (or over points: equal on every device)
+            terms, grads, stats = jax.lax.pmean((terms, grads, stats), RAYS)
+            term_ok = jax.tree_util.tree_map(lambda ok: jax.lax.pmin(ok.astype(jnp.int32), RAYS) > 0, term_ok)
+            counts = jax.lax.psum(counts, RAYS)
+        return terms, term_ok, grads, {**stats, **counts}
+
+    def step_fn(state: TrainState, scene: PointScene, batch: Batch):
+        key, k_render = jax.random.split(state.key)
+        trainables = state.trainables
+        rays = batch.rays
+        if mesh.devices.size == 1 or render_cfg.checks:  # runtime checks run on one device
+            terms, term_ok, grads, stats = local(trainables, scene, k_render, rays, batch.background, False)
+        else:
+            background = jnp.broadcast_to(batch.background, (rays.num_rays, 3))
+            terms, term_ok, grads, stats = shard_rays(
+                functools.partial(local, reduce=True), mesh, num_replicated=3, out_specs=P())(
+                trainables, scene, k_render, rays, background)
         total = sum(jnp.asarray(w, terms[k].dtype) * terms[k] for k, w in weights.items())
         updates, opt_state = optimizer.update(grads, state.opt_state, trainables)
         new_trainables = optax.apply_updates(trainables, updates)
         stage_check(render_cfg.checks, "update", trainables=new_trainables)
 
-        term_ok = {k: jnp.isfinite(v) & _all_finite(inter_grads[k]) for k, v in terms.items()}
         grad_ok = _all_finite(grads)
         update_ok = _all_finite(new_trainables)
         ok = jnp.all(jnp.stack(list(term_ok.values()))) & grad_ok & update_ok
-        out = fixed[0]
 
         applied = TrainState(params=new_trainables["params"], points=new_trainables["points"],
                              opt_state=opt_state, step=state.step + 1, key=key, skipped=state.skipped)
         refused = state.replace(skipped=state.skipped + 1)
         new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), applied, refused)
 
-        mse = terms["photometric"] if "photometric" in terms else jnp.mean(jnp.square(out.rgb - target))
         metrics = {f"loss/{k}": v for k, v in terms.items()}
         metrics["loss/total"] = total
         metrics.update({f"finite/{k}": term_ok[k] for k in terms})
         metrics["finite/grad"] = grad_ok
         metrics["finite/update"] = update_ok
         metrics["ok"] = ok
-        metrics["psnr"] = -10.0 * jnp.log10(jnp.maximum(mse, 1e-10))
+        metrics["psnr"] = -10.0 * jnp.log10(jnp.maximum(stats["mse"], 1e-10))
         metrics["lr"] = jnp.asarray(schedule(state.step), jnp.float32)
         metrics["grad_norm"] = optax.tree.norm(grads)
-        metrics["opacity"] = jnp.mean(out.opacity)
-        metrics["overflow"] = jnp.sum(out.overflow)
-        metrics["dropped"] = jnp.sum(out.dropped)
+        metrics["opacity"] = stats["opacity"]
+        metrics["overflow"] = stats["overflow"]
+        metrics["dropped"] = stats["dropped"]
         return new_state, metrics
 
-    return checked(step_fn) if render_cfg.checks else jax.jit(step_fn)
+    step = checked(step_fn) if render_cfg.checks else jax.jit(step_fn)
+    if mesh.devices.size == 1 or render_cfg.checks:
+        return step
+    replicated = NamedSharding(mesh, P())
+
+    def sharded_step(state: TrainState, scene: PointScene, batch: Batch):
+        # the state lives replicated on the mesh from the first step on (a no-op once it does), so
+        # the step's input shardings, and with them its compiled program, never change
+        return step(jax.device_put(state, replicated), scene, batch)
+
+    sharded_step._cache_size = step._cache_size
+    return sharded_step
 
 
 __all__ = ["make_train_step"]

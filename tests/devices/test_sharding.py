@@ -1,0 +1,109 @@
+"""Rays split over a device mesh: a sharded render and a sharded training step equal the
+single-device ones, and repeated steps do not recompile.
+
+These tests need several devices: ``bash run.sh test`` runs them as their own step with
+``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (``pytest -m multidevice tests/devices``);
+in a one-device process they are deselected. The mesh-independent parts (the mesh helpers, the
+distributed flags) run in the default suite.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ne_jax.cli import build_parser
+from ne_jax.devices import padded_size, ray_mesh
+from ne_jax.render.renderer import render_chunked
+from ne_jax.train import TrainConfig, init_train_state, make_train_step
+from ne_jax.train.sampler import Batch
+from tests.hard_cases.render_scene import CFG, build, scene_inputs
+
+multidevice = pytest.mark.multidevice
+
+
+def test_mesh_helpers_and_their_errors():
+    mesh = ray_mesh(1)
+    assert mesh.axis_names == ("rays",) and mesh.devices.size == 1
+    assert padded_size(10, mesh) == 10
+    with pytest.raises(ValueError, match=r"ray_mesh: expected 1 to \d+ devices .* found num_devices=0"):
+        ray_mesh(0)
+
+
+def test_distributed_flags_are_parsed_and_checked():
+    args = build_parser().parse_args(["--coordinator", "localhost:1234", "--num-processes", "2", "--process-id", "1",
+                                      "export", "run", "--out", "x.ply"])
+    assert (args.coordinator, args.num_processes, args.process_id) == ("localhost:1234", 2, 1)
+    from ne_jax.devices import initialize_distributed
+
+    with pytest.raises(ValueError, match="--coordinator: expected host:port"):
+        initialize_distributed("localhost", 1, 0)
+    with pytest.raises(ValueError, match="0 <= id < N, found 2 and 2"):
+        initialize_distributed("localhost:1", 2, 2)
+
+
+def test_one_process_distributed_run_initialises_jax(tmp_path):
+    """``ne-jax --coordinator ... --num-processes 1 --process-id 0`` starts jax.distributed (a real
+    coordination service on localhost) before the command runs."""
+    code = ("import sys, jax; from ne_jax.cli import main; "
+            "rc = main(['--coordinator', 'localhost:47613', '--num-processes', '1', '--process-id', '0', "
+            "'export', sys.argv[1], '--out', sys.argv[2]]); "
+            "print('processes', jax.process_count(), 'rc', rc)")
+    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "missing"), str(tmp_path / "x.ply")],
+                          capture_output=True, text=True, timeout=120)
+    assert "processes 1 rc 2" in proc.stdout, proc.stdout + proc.stderr
+    assert "missing: expected a training run directory" in proc.stderr
+
+
+@pytest.fixture(scope="module")
+def scene_and_rays():
+    return build(scene_inputs(0))
+
+
+@multidevice
+@pytest.mark.parametrize("devices", [2, 4])
+def test_sharded_render_equals_single_device(scene_and_rays, devices):
+    params, scene, rays, bg = scene_and_rays
+    one = render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(1))
+    many = render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(devices))
+    assert {d.id for d in many.rgb.devices()} == set(range(devices))
+    for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(many)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+
+
+def _batch(rays, bg):
+    rng = np.random.default_rng(1)
+    target = np.concatenate([rng.uniform(size=(rays.num_rays, 3)), np.ones((rays.num_rays, 1))], 1)
+    return Batch(rays=rays.replace(target=jnp.asarray(target, rays.origin.dtype)),
+                 pixel=jnp.arange(rays.num_rays, dtype=jnp.int32), in_band=jnp.zeros(rays.num_rays, bool),
+                 background=jnp.asarray(bg))
+
+
+@multidevice
+def test_sharded_training_step_equals_single_device_and_compiles_once(scene_and_rays):
+    params, scene, rays, bg = scene_and_rays
+    tcfg = TrainConfig(total_steps=10)
+    state = init_train_state(tcfg, CFG, scene.points, jax.random.key(0))
+    state = state.replace(params=params, opt_state=tcfg.optimizer().init({"params": params, "points": state.points}))
+    batch = _batch(rays, bg)
+    one, many = make_train_step(tcfg, CFG, ray_mesh(1)), make_train_step(tcfg, CFG, ray_mesh(4))
+    compiles = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **kw: compiles.append(event) if event == "/jax/core/compile/backend_compile_duration" else None)
+    s1, s4 = state, state
+    for i in range(3):
+        s1, m1 = one(s1, scene, batch)
+        if i == 1:
+            compiles.clear()  # from here on: no compilation at all
+        s4, m4 = many(s4, scene, batch)
+        assert bool(m4["ok"])
+        for k in m1:
+            np.testing.assert_allclose(np.asarray(m4[k]), np.asarray(m1[k]), rtol=2e-5, atol=1e-6, err_msg=k)
+    assert compiles == []
+    for a, b in zip(jax.tree_util.tree_leaves((s1.params, s1.points)), jax.tree_util.tree_leaves((s4.params, s4.points))):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
