@@ -14,6 +14,20 @@ import numpy as np
 from flax import struct
 
 
+def as_cloud(x, name: str) -> np.ndarray:
+    """``x`` as a float64 ``[N, 3]`` cloud of at least one finite point; otherwise a ``ValueError``
+    naming ``name``, what was expected and what was found (the first bad row)."""
+    x = np.asarray(x, np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"{name}: expected an [N, 3] point cloud, found shape {x.shape}")
+    if x.shape[0] == 0:
+        raise ValueError(f"{name}: expected at least one point, found none")
+    if not np.isfinite(x).all():
+        row = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
+        raise ValueError(f"{name}: expected finite positions, found {x[row].tolist()} at row {row}")
+    return x
+
+
 @struct.dataclass
 class PointState:
     """Per-point arrays of a capacity-``C`` cloud (``F`` feature channels).

@@ -25,23 +25,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-
-def _as_cloud(x, name: str) -> np.ndarray:
-    x = np.asarray(x, np.float64)
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ValueError(f"{name}: expected an [N, 3] point cloud, found shape {x.shape}")
-    if x.shape[0] == 0:
-        raise ValueError(f"{name}: expected at least one point, found none")
-    if not np.isfinite(x).all():
-        row = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
-        raise ValueError(f"{name}: expected finite positions, found {x[row].tolist()} at row {row}")
-    return x
+from ne_jax.geometry.points import as_cloud
 
 
 def kd_match(a, b) -> np.ndarray:
     """The K-D-tree matching of ``a [N, 3]`` and ``b [N, 3]``: ``perm [N]`` (a permutation) with
     ``b[perm[i]]`` paired to ``a[i]``."""
-    a, b = _as_cloud(a, "a"), _as_cloud(b, "b")
+    a, b = as_cloud(a, "a"), as_cloud(b, "b")
     if a.shape != b.shape:
         raise ValueError(f"kd_match: expected clouds of equal size, found {a.shape[0]} and {b.shape[0]} points "
                          "(bring them to one size with equal_size)")
@@ -103,9 +93,9 @@ def index_path(clouds: Sequence, names: Sequence[str] | None = None) -> list[np.
     names = list(names) if names is not None else [f"cloud {i}" for i in range(len(clouds))]
     if len(clouds) < 2:
         raise ValueError(f"index_path: expected at least two clouds, found {len(clouds)}")
-    out = [_as_cloud(clouds[0], names[0])]
+    out = [as_cloud(clouds[0], names[0])]
     for cloud, name in zip(clouds[1:], names[1:]):
-        cloud = _as_cloud(cloud, name)
+        cloud = as_cloud(cloud, name)
         if cloud.shape[0] != out[0].shape[0]:
             raise ValueError(f"{name}: expected {out[0].shape[0]} points (the size of {names[0]}), "
                              f"found {cloud.shape[0]}")

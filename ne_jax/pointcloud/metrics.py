@@ -11,16 +11,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-
-def _points(name: str, a) -> np.ndarray:
-    a = np.asarray(a, np.float64)
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name}: expected shape [N, 3], found {a.shape}")
-    if a.shape[0] == 0:
-        raise ValueError(f"{name}: expected at least one point, found 0")
-    if not np.isfinite(a).all():
-        raise ValueError(f"{name}: expected finite coordinates, found NaN/inf")
-    return a
+from ne_jax.geometry.points import as_cloud
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,7 +38,7 @@ class Chamfer:
 def chamfer(points, reference, workers: int = -1) -> Chamfer:
     """Chamfer distance between ``points`` ``[N, 3]`` and ``reference`` ``[G, 3]`` (both directions,
     mean and median); see :class:`Chamfer`."""
-    p, g = _points("points", points), _points("reference", reference)
+    p, g = as_cloud(points, "points"), as_cloud(reference, "reference")
     d_pg, _ = cKDTree(g).query(p, k=1, workers=workers)
     d_gp, _ = cKDTree(p).query(g, k=1, workers=workers)
     return Chamfer(float(d_pg.mean()), float(np.median(d_pg)), float(d_gp.mean()), float(np.median(d_gp)))
@@ -74,7 +65,7 @@ def normal_agreement(points, normals, reference, reference_normals, workers: int
     """Compare ``normals`` ``[N, 3]`` at ``points`` ``[N, 3]`` with ``reference_normals`` ``[G, 3]``
     of the nearest ``reference`` point ``[G, 3]``; see :class:`NormalAgreement`. Normals need not be
     unit length (they are normalised; zero-length ones score 0)."""
-    p, g = _points("points", points), _points("reference", reference)
+    p, g = as_cloud(points, "points"), as_cloud(reference, "reference")
     n = np.asarray(normals, np.float64)
     gn = np.asarray(reference_normals, np.float64)
     if n.shape != p.shape:

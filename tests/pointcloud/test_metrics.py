@@ -65,7 +65,7 @@ def test_normal_agreement_uses_the_nearest_reference():
 
 
 def test_errors_name_the_argument():
-    with pytest.raises(ValueError, match=r"points: expected shape \[N, 3\]"):
+    with pytest.raises(ValueError, match=r"points: expected an \[N, 3\] point cloud"):
         chamfer(np.zeros((3, 2)), np.zeros((3, 3)))
     with pytest.raises(ValueError, match="reference: expected at least one point"):
         chamfer(np.zeros((3, 3)), np.zeros((0, 3)))
