@@ -2,7 +2,9 @@
 
     python experiments/accuracy_vs_time.py --study numerics           # part 1: a few minutes on 2 CPU cores
     python experiments/accuracy_vs_time.py --study numerics --quick   # reduced sizes (the smoke test)
-    python experiments/accuracy_vs_time.py --study image              # part 2: needs a trained model
+    python experiments/accuracy_vs_time.py --study image --run RUN_DIR [--edit bend] [--scene DIR] [--quick]
+                                                                      # part 2: a trained model and its edit
+                                                                      # (experiments/accuracy_vs_time_image.py)
 
 ``--study numerics`` needs no training. Three studies, each measured against an exact reference:
 
@@ -776,6 +778,9 @@ def main(argv=None) -> int:
                     help="rewrite the Markdown summary from the JSON in --out-dir (no measuring, no plots)")
     ap.add_argument("--render-worker", nargs=3, metavar=("DTYPE", "MODEL", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--sizes-json", help=argparse.SUPPRESS)
+    ap.add_argument("--run", type=Path, help="--study image: a trained run directory (required)")
+    ap.add_argument("--edit", default="bend", help="--study image: the benchmark edit (ground truth <scene>/edits/<edit>)")
+    ap.add_argument("--scene", type=Path, help="--study image: the scene folder, if not the one the run recorded")
     args = ap.parse_args(argv)
     if args.render_worker:
         render_worker(args.render_worker[0], Sizes(**{k: tuple(v) if isinstance(v, list) else v
@@ -783,8 +788,24 @@ def main(argv=None) -> int:
                       args.render_worker[1], args.render_worker[2])
         return 0
     if args.study == "image":
-        print("--study image needs a trained model: lands with issue 7 part 2", file=sys.stderr)
-        return 2
+        import importlib.util
+
+        spec = importlib.util.spec_from_file_location("accuracy_vs_time_image", HERE / "accuracy_vs_time_image.py")
+        image = importlib.util.module_from_spec(spec)
+        sys.modules["accuracy_vs_time_image"] = image
+        spec.loader.exec_module(image)
+        if args.summary_only:
+            image.rewrite_summary(args.out_dir)
+            return 0
+        if args.run is None:
+            print("--study image needs a trained model: pass --run RUN_DIR", file=sys.stderr)
+            return 2
+        command = " ".join(["python experiments/accuracy_vs_time.py --study image --run", str(args.run)]
+                           + ([f"--edit {args.edit}"] if args.edit != "bend" else [])
+                           + ([f"--scene {args.scene}"] if args.scene else []) + (["--quick"] if args.quick else []))
+        res = image.run_image(args.run, args.out_dir, command, edit=args.edit, scene=args.scene, quick=args.quick)
+        print((args.out_dir / "accuracy_vs_time_image.md").read_text())
+        return 0 if res["targets"] else 1
     if args.summary_only:
         from ne_jax.atomic import atomic_write_json, atomic_write_text
 

@@ -110,14 +110,95 @@ def test_precision_sanity(quick_run):
     assert pr["rgb_mean_abs_diff"] <= pr["rgb_max_abs_diff"]
 
 
-def test_image_study_is_a_placeholder(capsys):
-    avt = _load()
-    assert avt.main(["--study", "image"]) == 2
-    assert "needs a trained model: lands with issue 7 part 2" in capsys.readouterr().err
-
-
 def test_fit_order_recovers_a_power_law():
     avt = _load()
     s = np.array([4, 8, 16, 32, 64])
     assert avt.fit_order(s, 3.0 * (1.0 / (s - 1)) ** 3, "hermite") == pytest.approx(3.0)
     assert avt.fit_order(s, 0.5 * (1.0 / s) ** 1.5, "stochastic") == pytest.approx(1.5)
+
+
+# ------------------------------------------------------------------------- --study image (part 2)
+
+
+@pytest.fixture(scope="module")
+def image_run(tmp_path_factory):
+    """A model trained for a few steps on a 24-px generated glossy scene (as tests/edit/test_model.py),
+    then the image study in ``--quick`` mode on it and its zero-shot "bend" edit."""
+    import dataclasses
+    import time
+
+    from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+    from ne_jax.geometry.kdtree import KDTreeConfig
+    from ne_jax.pointcloud.optimise import PointOptConfig
+    from ne_jax.render.quadrature import QuadratureConfig
+    from ne_jax.render.renderer import RenderConfig
+    from ne_jax.train import SamplerConfig, TrainConfig
+    from ne_jax.train.loop import InitConfig, RunConfig, train
+
+    avt = _load()
+    root = tmp_path_factory.mktemp("avt_image")
+    mini = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
+                           detail=0.4, surface_samples=2000)
+    generate_scene("glossy", mini, root / "bench", seed=0)
+    render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24),
+                               quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
+    init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
+    run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),
+                    init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
+                    epochs=1, steps_per_epoch=4, point_rounds=(1, 0), log_every=2).with_schedule()
+    t0 = time.perf_counter()
+    train(run, root / "bench" / "glossy", root / "run", progress=False, log=lambda s: None)
+    t1 = time.perf_counter()
+    out = root / "results"
+    assert avt.main(["--study", "image", "--quick", "--run", str(root / "run"), "--out-dir", str(out)]) == 0
+    t2 = time.perf_counter()
+    print(f"image study smoke test: train {t1 - t0:.1f} s, study {t2 - t1:.1f} s")
+    return out, json.loads((out / "accuracy_vs_time_image.json").read_text()), root / "run"
+
+
+def test_image_study_needs_a_run(capsys):
+    avt = _load()
+    assert avt.main(["--study", "image"]) == 2
+    assert "needs a trained model: pass --run RUN_DIR" in capsys.readouterr().err
+
+
+def test_image_study_files_and_schema(image_run):
+    out, res, run_dir = image_run
+    for name in ("accuracy_vs_time_image.json", "accuracy_vs_time_image.md", "accuracy_vs_time_image.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert res["study"] == "image" and res["command"].endswith("--quick") and res["edit"] == "bend"
+    assert {"targets", "sizes", "machine", "discussion", "tiny_position", "wall_s", "preset"} <= set(res)
+    assert [t["target"] for t in res["targets"]] == ["original", "edit"]
+    from ne_jax.train.loop import load_run_config
+
+    image = sys.modules["accuracy_vs_time_image"]  # loaded by main
+    own = load_run_config(run_dir).render
+    for t in res["targets"]:
+        rows = t["rows"]
+        cfg = own.with_effects(ist=True) if t["target"] == "edit" else own
+        expected = [s.label for s in image.settings_for(cfg, image.ImageSizes.quick())]
+        assert [r["label"] for r in rows] == expected  # one row per setting, in order
+        assert rows[0]["knob"] == "own" and {"samples", "points", "chunk"} <= {r["knob"] for r in rows}
+        for r in rows:
+            assert {"psnr", "ssim", "ms_per_image", "compile_s", "d_psnr", "time_ratio", "on_front",
+                    "lost_segments", "alive_points"} <= set(r)
+            assert math.isfinite(r["psnr"]) and 0.0 < r["ssim"] <= 1.0
+            assert math.isfinite(r["ms_per_image"]) and r["ms_per_image"] > 0 and r["compile_s"] >= 0
+        # the front: non-empty, made of rows no other row beats
+        assert t["front"] and all(rows[i]["on_front"] for i in t["front"])
+        for i in t["front"]:
+            assert not any(b["ms_per_image"] < rows[i]["ms_per_image"] and b["psnr"] > rows[i]["psnr"] for b in rows)
+    md = (out / "accuracy_vs_time_image.md").read_text()
+    assert "Pareto front" in md and "`tiny` preset" in md and res["command"] in md
+
+
+def test_image_study_sanity(image_run):
+    _, res, _ = image_run
+    for t in res["targets"]:
+        rows = {r["label"]: r for r in t["rows"]}
+        full, quarter = rows["points 100%"], rows["points 25%"]
+        assert quarter["alive_points"] == pytest.approx(0.25 * full["alive_points"], abs=1)
+        # deleting three points in four cannot make the images better (beyond noise)
+        assert quarter["psnr"] <= full["psnr"] + 0.5, (t["target"], quarter["psnr"], full["psnr"])
+        # the same render twice scores the same; a chunk size changes no pixel (its accuracy is the own config's)
+        assert full.get("same_as") == "own config" and full["psnr"] == t["rows"][0]["psnr"]
