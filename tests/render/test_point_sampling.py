@@ -14,11 +14,19 @@ from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.knn import knn_interpolate
 from ne_jax.geometry.points import PointState
 from ne_jax.render.quadrature import QuadratureConfig, level_samples, sample_intervals
-from ne_jax.render.renderer import (PointScene, RenderConfig, _render_chunk, render_chunked, render_image,
-                                    render_rays, render_rays_with_aux)
+from ne_jax.render.renderer import (
+    PointScene,
+    RenderConfig,
+    _render_chunk,
+    render_chunked,
+    render_image,
+    render_rays,
+    render_rays_with_aux,
+)
 from ne_jax.render.shading import init_color_model, shade
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
+from tests.render.scenes import glossy_points
 
 RES = 16
 BG = jnp.array([1.0, 1.0, 1.0])
@@ -33,13 +41,7 @@ def _stochastic(cfg: RenderConfig) -> RenderConfig:
 
 @pytest.fixture(scope="module")
 def setup():
-    scene_gt = S.get_scene("glossy", 0.5)
-    smp = S.surface_samples(scene_gt, 3000, seed=0)
-    rng = np.random.default_rng(0)
-    points = PointState.from_numpy(smp["xyz"].astype(np.float32), capacity=3200, feature_dim=32,
-                                   normal=smp["normal"].astype(np.float32))
-    points = points.replace(feature=jnp.asarray(rng.normal(0, 0.5, points.feature.shape), jnp.float32),
-                            conf_logit=jnp.full(points.conf_logit.shape, 2.0))
+    points = glossy_points()
     cfg = RenderConfig.tiny(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
     scene = PointScene.build(points, cfg)
     params = init_color_model(cfg.shading, jax.random.key(0))

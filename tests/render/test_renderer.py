@@ -8,10 +8,16 @@ import pytest
 
 from ne_jax.data import synthetic as S
 from ne_jax.data.rays import Camera, Rays, camera_rays
-from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import (PointScene, RenderConfig, _render_chunk, render_chunked, render_image,
-                                    render_rays)
+from ne_jax.render.renderer import (
+    PointScene,
+    RenderConfig,
+    _render_chunk,
+    render_chunked,
+    render_image,
+    render_rays,
+)
 from ne_jax.render.shading import init_color_model
+from tests.render.scenes import glossy_points
 
 RES = 24
 BG = jnp.array([1.0, 1.0, 1.0])
@@ -19,18 +25,13 @@ BG = jnp.array([1.0, 1.0, 1.0])
 
 @pytest.fixture(scope="module")
 def setup():
-    scene_gt = S.get_scene("glossy", 0.5)
-    smp = S.surface_samples(scene_gt, 3000, seed=0)
-    rng = np.random.default_rng(0)
-    points = PointState.from_numpy(smp["xyz"].astype(np.float32), capacity=3200, feature_dim=32,
-                                   normal=smp["normal"].astype(np.float32))
-    points = points.replace(feature=jnp.asarray(rng.normal(0, 0.5, points.feature.shape), jnp.float32),
-                            conf_logit=jnp.full(points.conf_logit.shape, 2.0))
+    points = glossy_points()
     cfg = RenderConfig.tiny()
     scene = PointScene.build(points, cfg)
     params = init_color_model(cfg.shading, jax.random.key(0))
     c2w = S.orbit_cameras(8)[1]
     camera = Camera.from_fov(c2w, RES, RES, S.CAMERA_ANGLE_X)
+    scene_gt = S.get_scene("glossy", 0.5)
     alpha = S.RayCaster(S.apply_to_mesh(scene_gt.mesh, None), scene_gt.materials).render(
         c2w, RES, RES, S.CAMERA_ANGLE_X, ss=1)[..., 3]
     return cfg, params, scene, camera, alpha
