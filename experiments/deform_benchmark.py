@@ -30,7 +30,7 @@ import numpy as np
 from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 from ne_jax.data.benchmark import generate_benchmark, get_preset
 from ne_jax.data.nerf_synthetic import composite, load_split
-from ne_jax.data.png import encode_png
+from ne_jax.data.png import write_image
 from ne_jax.data.synthetic import SCENES, get_scene
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
@@ -196,7 +196,7 @@ def write_figure(out_name: str, figure: dict, variants) -> None:
             img = figure.get((s, e, c))
             if img is not None:
                 grid[i * (h + pad):i * (h + pad) + h, j * (w + pad):j * (w + pad) + w] = np.clip(img, 0, 1)
-    atomic_write_bytes(RESULTS / f"{out_name}.png", encode_png((grid * 255 + 0.5).astype(np.uint8)))
+    write_image(RESULTS / f"{out_name}.png", grid)
     atomic_write_text(RESULTS / f"{out_name}_figure.txt", "columns: " + ", ".join(cols) + "\nrows: "
                       + ", ".join(f"{s}/{e}" for s, e in rows) + "\n")
 

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
+from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.data.benchmark import generate_benchmark, get_preset
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.data.png import encode_png
+from ne_jax.data.png import write_image
 from ne_jax.data.synthetic import SCENES
 from ne_jax.edit.variants import get_variant, variant_run
 from ne_jax.morph import MorphSettings, morph_models, strip
@@ -90,7 +90,7 @@ def main(argv=None) -> None:
     grid = np.ones((len(strips) * (strips[0].shape[0] + pad) - pad, strips[0].shape[1], 3), np.float32)
     for i, s in enumerate(strips):
         grid[i * (s.shape[0] + pad):i * (s.shape[0] + pad) + s.shape[0]] = s
-    atomic_write_bytes(RESULTS / f"{name}.png", encode_png((grid * 255 + 0.5).astype(np.uint8)))
+    write_image(RESULTS / f"{name}.png", grid)
     print("\n".join(lines))
 
 

@@ -23,9 +23,9 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
+from ne_jax.atomic import atomic_directory, atomic_write_text
 from ne_jax.data.nerf_synthetic import parse_background
-from ne_jax.data.png import encode_png
+from ne_jax.data.png import write_image
 from ne_jax.data.rays import Camera
 from ne_jax.edit.apply import EditConfig
 from ne_jax.eval.views import save_images, write_video
@@ -131,7 +131,7 @@ def morph_models(a: TrainedModel, b: TrainedModel, out_dir: str | Path, camera: 
     with atomic_directory(out_dir) as tmp:
         save_images(frames, tmp / "frames", [f"frame_{i:03d}" for i in range(len(frames))])
         write_video(frames, tmp / settings.video, fps=settings.fps)
-        atomic_write_bytes(tmp / "strip.png", encode_png((strip(frames) * 255 + 0.5).astype(np.uint8)))
+        write_image(tmp / "strip.png", strip(frames))
         atomic_write_text(tmp / "morph.json", json.dumps(report, indent=2) + "\n")
     return report, frames
 
