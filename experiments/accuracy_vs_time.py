@@ -5,6 +5,9 @@
     python experiments/accuracy_vs_time.py --study image --run RUN_DIR [--edit bend] [--scene DIR] [--quick]
                                                                       # part 2: a trained model and its edit
                                                                       # (experiments/accuracy_vs_time_image.py)
+    python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
+                                                                      # part 3: models trained with each setting
+                                                                      # (experiments/accuracy_vs_time_training.py)
 
 ``--study numerics`` needs no training. Three studies, each measured against an exact reference:
 
@@ -769,9 +772,21 @@ def run_numerics(sz: Sizes, out_dir: Path, command: str) -> dict:
     return res
 
 
+def _sibling(name: str):
+    """A script next to this one as a module (registered in ``sys.modules``: its dataclasses need it)."""
+    import importlib.util
+
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return sys.modules[name]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--study", choices=("numerics", "image"), default="numerics")
+    ap.add_argument("--study", choices=("numerics", "image", "training"), default="numerics")
     ap.add_argument("--quick", action="store_true", help="reduced sizes (smoke test, well under a minute)")
     ap.add_argument("--out-dir", type=Path, default=RESULTS)
     ap.add_argument("--summary-only", action="store_true",
@@ -780,20 +795,30 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes-json", help=argparse.SUPPRESS)
     ap.add_argument("--run", type=Path, help="--study image: a trained run directory (required)")
     ap.add_argument("--edit", default="bend", help="--study image: the benchmark edit (ground truth <scene>/edits/<edit>)")
-    ap.add_argument("--scene", type=Path, help="--study image: the scene folder, if not the one the run recorded")
+    ap.add_argument("--scene", type=Path, help="--study image: the scene folder, if not the one the run recorded; "
+                                               "--study training: the scene to train on (required)")
+    ap.add_argument("--preset", default="tiny", choices=("tiny", "default", "paper"),
+                    help="--study training: the training preset whose candidates are trained")
+    ap.add_argument("--runs", type=Path, help="--study training: folder of the cached runs (default runs/avt_training)")
     args = ap.parse_args(argv)
     if args.render_worker:
         render_worker(args.render_worker[0], Sizes(**{k: tuple(v) if isinstance(v, list) else v
                                                       for k, v in json.loads(args.sizes_json).items()}),
                       args.render_worker[1], args.render_worker[2])
         return 0
+    if args.study == "training":
+        if args.scene is None:
+            print("--study training needs a scene to train on: pass --scene DIR", file=sys.stderr)
+            return 2
+        training = _sibling("accuracy_vs_time_training")
+        runs = args.runs or Path("runs") / "avt_training" / args.scene.name
+        command = " ".join(["python experiments/accuracy_vs_time.py --study training --scene", str(args.scene),
+                            "--preset", args.preset, "--runs", str(runs)] + (["--quick"] if args.quick else []))
+        res = training.run_training(args.scene, runs, args.out_dir, command, preset=args.preset, quick=args.quick)
+        print(training.summary_markdown(res))
+        return 0
     if args.study == "image":
-        import importlib.util
-
-        spec = importlib.util.spec_from_file_location("accuracy_vs_time_image", HERE / "accuracy_vs_time_image.py")
-        image = importlib.util.module_from_spec(spec)
-        sys.modules["accuracy_vs_time_image"] = image
-        spec.loader.exec_module(image)
+        image = _sibling("accuracy_vs_time_image")
         if args.summary_only:
             image.rewrite_summary(args.out_dir)
             return 0

@@ -282,19 +282,19 @@ def _cfg_summary(cfg) -> dict:
             "chunk": cfg.chunk, "integration": cfg.integration, "ist": bool(cfg.shading.effects.ist)}
 
 
-def pareto_front(rows: list[dict]) -> list[int]:
-    """Indices of the rows no other row beats (time <= and PSNR >=, one strictly), fastest first;
-    rows that repeat an earlier render (``same_as``) are left out."""
+def pareto_front(rows: list[dict], time_key: str = "ms_per_image") -> list[int]:
+    """Indices of the rows no other row beats (``time_key`` <= and PSNR >=, one strictly), fastest
+    first; rows that repeat an earlier render (``same_as``) are left out."""
     cand = [i for i, r in enumerate(rows) if "same_as" not in r]
     front = []
     for i in cand:
         a = rows[i]
-        dominated = any((b["ms_per_image"] <= a["ms_per_image"] and b["psnr"] >= a["psnr"])
-                        and (b["ms_per_image"] < a["ms_per_image"] or b["psnr"] > a["psnr"])
+        dominated = any((b[time_key] <= a[time_key] and b["psnr"] >= a["psnr"])
+                        and (b[time_key] < a[time_key] or b["psnr"] > a["psnr"])
                         for j in cand if j != i for b in [rows[j]])
         if not dominated:
             front.append(i)
-    return sorted(front, key=lambda i: rows[i]["ms_per_image"])
+    return sorted(front, key=lambda i: rows[i][time_key])
 
 
 def front_distance(rows: list[dict], front: list[int], i: int) -> dict:

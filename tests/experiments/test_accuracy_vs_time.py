@@ -121,11 +121,10 @@ def test_fit_order_recovers_a_power_law():
 
 
 @pytest.fixture(scope="module")
-def image_run(tmp_path_factory):
-    """A model trained for a few steps on a 24-px generated glossy scene (as tests/edit/test_model.py),
-    then the image study in ``--quick`` mode on it and its zero-shot "bend" edit."""
+def mini(tmp_path_factory):
+    """``(root, scene_dir, run)``: a 24-px generated glossy scene (as tests/edit/test_model.py) and a
+    RunConfig of a few steps."""
     import dataclasses
-    import time
 
     from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
     from ne_jax.geometry.kdtree import KDTreeConfig
@@ -133,21 +132,33 @@ def image_run(tmp_path_factory):
     from ne_jax.render.quadrature import QuadratureConfig
     from ne_jax.render.renderer import RenderConfig
     from ne_jax.train import SamplerConfig, TrainConfig
-    from ne_jax.train.loop import InitConfig, RunConfig, train
+    from ne_jax.train.loop import InitConfig, RunConfig
 
-    avt = _load()
-    root = tmp_path_factory.mktemp("avt_image")
-    mini = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
-                           detail=0.4, surface_samples=2000)
-    generate_scene("glossy", mini, root / "bench", seed=0)
+    root = tmp_path_factory.mktemp("avt_mini")
+    preset = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
+                             detail=0.4, surface_samples=2000)
+    generate_scene("glossy", preset, root / "bench", seed=0)
     render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24),
                                quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
     init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
     run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),
                     init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
                     epochs=1, steps_per_epoch=4, point_rounds=(1, 0), log_every=2).with_schedule()
+    return root, root / "bench" / "glossy", run
+
+
+@pytest.fixture(scope="module")
+def image_run(mini):
+    """A model trained for a few steps on the mini scene, then the image study in ``--quick`` mode on
+    it and its zero-shot "bend" edit."""
+    import time
+
+    from ne_jax.train.loop import train
+
+    avt = _load()
+    root, scene_dir, run = mini
     t0 = time.perf_counter()
-    train(run, root / "bench" / "glossy", root / "run", progress=False, log=lambda s: None)
+    train(run, scene_dir, root / "run", progress=False, log=lambda s: None)
     t1 = time.perf_counter()
     out = root / "results"
     assert avt.main(["--study", "image", "--quick", "--run", str(root / "run"), "--out-dir", str(out)]) == 0
@@ -202,3 +213,74 @@ def test_image_study_sanity(image_run):
         assert quarter["psnr"] <= full["psnr"] + 0.5, (t["target"], quarter["psnr"], full["psnr"])
         # the same render twice scores the same; a chunk size changes no pixel (its accuracy is the own config's)
         assert full.get("same_as") == "own config" and full["psnr"] == t["rows"][0]["psnr"]
+
+
+# ---------------------------------------------------------------------- --study training (part 3)
+
+
+def _training():
+    _load()
+    return sys.modules["accuracy_vs_time"]._sibling("accuracy_vs_time_training")
+
+
+def test_training_study_needs_a_scene(capsys):
+    avt = _load()
+    assert avt.main(["--study", "training"]) == 2
+    assert "needs a scene to train on: pass --scene DIR" in capsys.readouterr().err
+
+
+def test_training_candidates_change_one_knob():
+    from ne_jax.train.loop import RunConfig
+
+    tr = _training()
+    own = RunConfig.tiny()
+    cands = tr.candidates_for(own)
+    assert cands[0].label == "own" and cands[0].run == own
+    keys = [tr.config_key(c.run) for c in cands]
+    assert len(set(keys)) == len(keys)  # every candidate trains its own model
+    by = {c.label: c.run for c in cands}
+    k2 = by[f"K={2 * own.render.tree.knn_k}"]
+    assert k2.replace(render=own.render) == own and k2.render.tree.replace(knn_k=own.render.tree.knn_k) == own.render.tree
+    half = by["steps x0.5"]
+    assert half.total_steps == own.total_steps // 2 and half.train.total_steps == half.total_steps
+    assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
+
+
+def _row(label, psnr, train_s, ms, knob="k"):
+    return {"label": label, "knob": knob, "psnr": psnr, "train_s": train_s, "ms_per_image": ms}
+
+
+def test_choose_preset_rule():
+    tr = _training()
+    own = _row("own", 22.0, 100, 100, "own")
+    rows = [own, _row("seed", 21.8, 100, 100, "seed"), _row("better", 22.5, 110, 110),
+            _row("best but slow", 23.0, 200, 100), _row("worse", 21.0, 120, 90)]
+    ch = tr.choose_preset(rows)
+    assert ch["label"] == "better" and ch["gain_db"] == pytest.approx(0.5)
+    assert ch["seed_noise_db"] == pytest.approx(0.2) and not ch["confirmed"]  # 0.5 dB > 0.2 dB of noise
+    assert 3 in ch["train_front"] and 4 not in ch["train_front"]  # "worse" is beaten by "own"
+    ch = tr.choose_preset([own, _row("seed", 21.4, 100, 100, "seed"), _row("better", 22.5, 110, 110)])
+    assert ch["label"] == "better" and ch["confirmed"]  # within the seed noise (0.6 dB)
+    ch = tr.choose_preset([own, _row("slow", 25.0, 130, 100), _row("slow image", 25.0, 100, 200)])
+    assert ch["pick"] == 0 and ch["confirmed"]  # nothing better inside the budget
+
+
+def test_training_study_smoke_and_cache(mini):
+    root, scene_dir, run = mini
+    tr = _training()
+    runs, out = root / "avt_training_runs", root / "avt_training"
+    res = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)
+    stem = "accuracy_vs_time_training_test"
+    for ext in ("json", "md", "png"):
+        assert (out / f"{stem}.{ext}").stat().st_size > 0, ext
+    rows = res["rows"]
+    assert [r["label"] for r in rows] == [c.label for c in tr.candidates_for(run, quick=True)]
+    for r in rows:
+        assert math.isfinite(r["psnr"]) and 0.0 < r["ssim"] <= 1.0 and r["train_s"] > 0 and r["ms_per_image"] > 0
+        assert r["steps"] == run.total_steps and not r["cached"]
+    ch = res["choice"]
+    assert ch["train_front"] and ch["render_front"] and 0 <= ch["pick"] < len(rows)
+    again = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)  # cached: nothing trains
+    assert all(r["cached"] for r in again["rows"])
+    assert [(r["psnr"], r["train_s"]) for r in again["rows"]] == [(r["psnr"], r["train_s"]) for r in rows]
+    assert "Preset rule" in (out / f"{stem}.md").read_text()

@@ -1,0 +1,257 @@
+"""Accuracy against time for models *trained* with each setting, and the preset chosen from the front
+(issue 7, part 3).
+
+    python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
+
+The image study (part 2) changes render settings of one trained model; settings judged that way do
+not transfer (a model adapts its features to the K, ``s`` and tree it was trained with). Here every
+candidate is a whole :class:`~ne_jax.train.loop.RunConfig`: the preset with one knob changed (K,
+samples per segment ``s``, both, steps, rays per batch, initial points) plus the preset again with
+another seed, whose spread is the training noise that any difference must exceed. Each candidate is
+trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the config: a re-run trains only
+what is missing) and scored on the scene's test split with its own render config.
+
+Per candidate: test PSNR/SSIM, training wall time as the loop recorded it (initial cloud, epochs with
+their compiles, point-cloud rounds), the time per test image (best of repeats after a compiling call)
+and the number of points. Two Pareto fronts (PSNR against training time, PSNR against time per
+image), and the preset rule: **the highest test PSNR among candidates on the training-time front that
+train in at most ``budget`` x the preset's own time and render in at most ``budget`` x its time per
+image**; the preset is confirmed when that is the preset itself or within the seed noise of it.
+
+Writes ``accuracy_vs_time_training_<preset>.{json,png,md}`` to ``--out-dir``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:
+    sys.path.insert(0, str(HERE))
+
+from accuracy_vs_time_image import SHARED_NOTE, _scaled_samples, best_time, pareto_front  # noqa: E402
+
+BUDGET = 1.25
+"""A preset may cost at most this many times its current training time and time per image."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    label: str
+    knob: str
+    run: object  # RunConfig
+
+
+def candidates_for(run, quick: bool = False) -> list[Candidate]:
+    """The preset ``run`` and one-knob changes of it (``quick``: two short ones, for the smoke test)."""
+    t, q = run.render.tree, run.render.quadrature
+    spl = tuple(q.samples_per_level)
+
+    def with_k(k, cfg=run):
+        return cfg.replace(render=cfg.render.replace(tree=cfg.render.tree.replace(knn_k=k)))
+
+    def with_s(f, cfg=run):
+        rq = cfg.render.quadrature
+        return cfg.replace(render=cfg.render.replace(
+            quadrature=dataclasses.replace(rq, samples_per_level=_scaled_samples(tuple(rq.samples_per_level), f))))
+
+    if quick:
+        return [Candidate("own", "own", run), Candidate(f"K={max(1, t.knn_k // 2)}", "k", with_k(max(1, t.knn_k // 2)))]
+    out = [Candidate("own", "own", run), Candidate("own, seed 1", "seed", run.replace(seed=run.seed + 1))]
+    for k in (t.knn_k // 2, 2 * t.knn_k):
+        if 1 <= k <= t.num_candidates:
+            out.append(Candidate(f"K={k}", "k", with_k(k)))
+    for f in (0.5, 2.0):
+        out.append(Candidate(f"s x{f:g} {_scaled_samples(spl, f)[:t.num_render_levels]}", "samples", with_s(f)))
+    if 2 * t.knn_k <= t.num_candidates:
+        out.append(Candidate(f"K={2 * t.knn_k}, s x0.5", "joint", with_s(0.5, with_k(2 * t.knn_k))))
+    for f in (0.5, 2.0):
+        out.append(Candidate(f"steps x{f:g}", "steps", run.with_schedule(steps_per_epoch=int(run.steps_per_epoch * f))))
+    out.append(Candidate(f"batch x2 ({2 * run.sampler.batch_size} rays)", "batch",
+                         run.replace(sampler=run.sampler.replace(batch_size=2 * run.sampler.batch_size))))
+    carve = run.init.carve
+    out.append(Candidate(f"initial points x2 ({2 * carve.num_points})", "points",
+                         run.replace(init=dataclasses.replace(run.init, carve=dataclasses.replace(
+                             carve, num_points=2 * carve.num_points)))))
+    return out
+
+
+def config_key(run) -> str:
+    """A short hash of the whole config: the cache key of a candidate's run directory."""
+    from ne_jax.train.checkpoint import config_to_json
+
+    text = json.dumps(config_to_json(run), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def train_seconds(result) -> float:
+    """Training wall time as the loop recorded it: initial cloud, epochs (compiles included), rounds."""
+    s = float(result.initial.get("seconds", 0.0))
+    for e in result.history:
+        s += float(e.get("train_seconds", 0.0)) + float(e.get("points", {}).get("seconds", 0.0))
+    return s
+
+
+def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, log) -> dict:
+    """Train (or reuse) the candidate's run and score it on the test split."""
+    import jax
+    import numpy as np
+
+    from ne_jax.data.nerf_synthetic import load_split, parse_background
+    from ne_jax.eval.views import evaluate_split
+    from ne_jax.render.quadrature import at_test_time
+    from ne_jax.render.renderer import render_image
+    from ne_jax.train.loop import train
+
+    run = c.run
+    run_dir = runs / config_key(run)
+    t0 = time.perf_counter()
+    result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
+    cached = time.perf_counter() - t0 < 0.5 * train_seconds(result)  # a finished run returns at once
+    split = load_split(scene_dir, "test")
+    near, far = run.sampler.near, run.sampler.far
+    report, _ = evaluate_split(run.render, result.state.params, result.scene, split, run.background, near, far,
+                               progress=False)
+    cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
+    fn = functools.partial(render_image, cfg, result.state.params, result.scene, split.cameras()[0],
+                           parse_background(run.background), near, far, progress=False)
+    first, best = best_time(fn, repeats)
+    jax.clear_caches()
+    row = {"label": c.label, "knob": c.knob, "run_dir": str(run_dir), "cached": bool(cached),
+           "psnr": round(report["psnr"], 4), "ssim": round(report["ssim"], 5),
+           "train_s": round(train_seconds(result), 1), "ms_per_image": round(1e3 * best, 2),
+           "compile_s": round(max(0.0, first - best), 3), "steps": int(result.state.step),
+           "batch_size": run.sampler.batch_size, "knn_k": run.render.tree.knn_k,
+           "samples_per_level": list(run.render.quadrature.samples_per_level),
+           "initial_points": int(result.initial.get("points", 0)),
+           "final_points": int(np.asarray(result.scene.points.alive).sum())}
+    log(f"[{c.label}] PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}, train {row['train_s']:.0f} s"
+        f"{' (cached run)' if cached else ''}, {row['ms_per_image']:.0f} ms per image")
+    return row
+
+
+def choose_preset(rows: list[dict], budget: float = BUDGET) -> dict:
+    """The preset rule (module docstring) applied to ``rows`` (row 0 the preset itself)."""
+    own = rows[0]
+    front = pareto_front(rows, time_key="train_s")
+    ok = [i for i in front if rows[i]["train_s"] <= budget * own["train_s"]
+          and rows[i]["ms_per_image"] <= budget * own["ms_per_image"]]
+    pick = max(ok, key=lambda i: rows[i]["psnr"]) if ok else 0
+    seeds = [r["psnr"] for r in rows if r["knob"] in ("own", "seed")]
+    noise = max(seeds) - min(seeds) if len(seeds) > 1 else None
+    gain = rows[pick]["psnr"] - own["psnr"]
+    confirmed = pick == 0 or (noise is not None and gain <= noise)
+    return {"pick": pick, "label": rows[pick]["label"], "gain_db": round(gain, 3),
+            "seed_noise_db": None if noise is None else round(noise, 3), "confirmed": bool(confirmed),
+            "budget": budget, "train_front": front, "render_front": pareto_front(rows)}
+
+
+def summary_markdown(res: dict) -> str:
+    rows, ch = res["rows"], res["choice"]
+    own = rows[0]
+    L = [f"### Trained settings: accuracy against time (`{res['command']}`)", "",
+         f"Scene `{res['scene']}`, preset `{res['preset']}` and one-knob changes of it, each trained from "
+         f"scratch and scored on the test split ({res['split']}) with its own render config. Measured on "
+         f"{res['machine']['platform']}, JAX {res['jax']}; {SHARED_NOTE}. Study wall time {res['wall_s']:.0f} s "
+         f"(cached runs are reused; their training time is the one recorded when they were trained).", "",
+         "| candidate | PSNR | dPSNR | SSIM | train s | train / own | ms / image | image / own | points | fronts |",
+         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for i, r in enumerate(rows):
+        fronts = "/".join(x for x, f in (("train", ch["train_front"]), ("image", ch["render_front"])) if i in f)
+        L.append(f"| {r['label']} | {r['psnr']:.2f} | {r['psnr'] - own['psnr']:+.2f} | {r['ssim']:.4f} | "
+                 f"{r['train_s']:.0f} | {r['train_s'] / own['train_s']:.2f} | {r['ms_per_image']:.0f} | "
+                 f"{r['ms_per_image'] / own['ms_per_image']:.2f} | {r['final_points']} | {fronts} |")
+    noise = ch["seed_noise_db"]
+    L += ["", f"Training noise: the preset with another seed differs by {noise:.2f} dB." if noise is not None
+          else "Training noise: not measured (no second seed).", "",
+          f"Preset rule: the highest PSNR on the training-time front within {ch['budget']:g}x the preset's "
+          f"training time and time per image. Pick: **{ch['label']}** ({ch['gain_db']:+.2f} dB). "
+          + (f"The `{res['preset']}` preset is confirmed: it is the pick"
+             + ("." if ch["pick"] == 0 else f", or within the seed noise of it ({ch['gain_db']:+.2f} <= {noise:.2f} dB).")
+             if ch["confirmed"] else
+             f"The `{res['preset']}` preset should change to it: the gain exceeds the seed noise."), "",
+          f"Plot: `experiments/results/accuracy_vs_time_training_{res['preset']}.png`.", ""]
+    return "\n".join(L)
+
+
+def plot(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows, ch = res["rows"], res["choice"]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    for ax, key, front, xlabel in ((axes[0], "train_s", ch["train_front"], "training wall time (s)"),
+                                   (axes[1], "ms_per_image", ch["render_front"], "ms per test image (min of repeats)")):
+        for knob in dict.fromkeys(r["knob"] for r in rows):
+            sel = [r for r in rows if r["knob"] == knob]
+            ax.scatter([r[key] for r in sel], [r["psnr"] for r in sel], s=26, label=knob, alpha=0.85)
+        f = sorted((rows[i] for i in front), key=lambda r: r[key])
+        ax.step([r[key] for r in f], [r["psnr"] for r in f], where="post", color="k", lw=1, label="Pareto front")
+        ax.scatter([rows[0][key]], [rows[0]["psnr"]], marker="*", s=200, color="red", zorder=5,
+                   label=f"preset {res['preset']}")
+        pick = rows[ch["pick"]]
+        ax.scatter([pick[key]], [pick["psnr"]], marker="o", s=160, facecolors="none", edgecolors="k", zorder=6,
+                   label="rule's pick")
+        for r in rows:
+            ax.annotate(r["label"], (r[key], r["psnr"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_xlabel(xlabel + ", log")
+        ax.set_ylabel("test PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+    fig.suptitle(f"{res['preset']} preset on {Path(res['scene']).name}: each point a model trained with that "
+                 f"setting (noisy shared 2-core CPU)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, preset: str = "tiny",
+                 quick: bool = False, run=None, log=None) -> dict:
+    """Train and score every candidate, write JSON, PNG and Markdown; returns the results.
+
+    ``run``: the base RunConfig instead of the preset ``preset`` (named by its ``name``); ``quick``
+    with no ``run``: the preset cut to 2 epochs of 5 steps without rounds."""
+    import jax
+
+    from ne_jax.atomic import atomic_write_json, atomic_write_text
+    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.train.loop import get_run_preset
+
+    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    scene_dir = Path(scene_dir)
+    if not (scene_dir / "transforms_test.json").is_file():
+        raise FileNotFoundError(f"--scene {scene_dir}: expected a scene folder with transforms_test.json, found none")
+    if run is None:
+        run = get_run_preset(preset)
+        if quick:
+            run = run.with_schedule(epochs=2, steps_per_epoch=5).replace(point_rounds=(1, 0))  # no rounds
+    preset = run.name
+    t0 = time.perf_counter()
+    rows = [measure_candidate(c, scene_dir, Path(runs), 1 if quick else 3, log) for c in candidates_for(run, quick)]
+    split = load_split(scene_dir, "test")
+    res = {"study": "training", "command": command, "preset": preset, "scene": str(scene_dir), "quick": quick,
+           "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
+           "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": SHARED_NOTE},
+           "jax": jax.__version__, "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
+    res["choice"] = choose_preset(rows)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"accuracy_vs_time_training_{preset}"
+    plot(res, out_dir / f"{stem}.png")
+    atomic_write_json(out_dir / f"{stem}.json", res)
+    atomic_write_text(out_dir / f"{stem}.md", summary_markdown(res))
+    return res
+
+
+__all__ = ["BUDGET", "Candidate", "candidates_for", "choose_preset", "config_key", "run_training",
+           "summary_markdown", "train_seconds"]
