@@ -92,14 +92,6 @@ def config_key(run) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def train_seconds(result) -> float:
-    """Training wall time as the loop recorded it: initial cloud, epochs (compiles included), rounds."""
-    s = float(result.initial.get("seconds", 0.0))
-    for e in result.history:
-        s += float(e.get("train_seconds", 0.0)) + float(e.get("points", {}).get("seconds", 0.0))
-    return s
-
-
 def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, log) -> dict:
     """Train (or reuse) the candidate's run and score it on the test split."""
     import jax
@@ -115,7 +107,7 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     run_dir = runs / config_key(run)
     t0 = time.perf_counter()
     result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
-    cached = time.perf_counter() - t0 < 0.5 * train_seconds(result)  # a finished run returns at once
+    cached = time.perf_counter() - t0 < 0.5 * result.recorded_seconds  # a finished run returns at once
     split = load_split(scene_dir, "test")
     near, far = run.sampler.near, run.sampler.far
     report, _ = evaluate_split(run.render, result.state.params, result.scene, split, run.background, near, far,
@@ -127,7 +119,7 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     jax.clear_caches()
     row = {"label": c.label, "knob": c.knob, "run_dir": str(run_dir), "cached": bool(cached),
            "psnr": round(report["psnr"], 4), "ssim": round(report["ssim"], 5),
-           "train_s": round(train_seconds(result), 1), "ms_per_image": round(1e3 * best, 2),
+           "train_s": round(result.recorded_seconds, 1), "ms_per_image": round(1e3 * best, 2),
            "compile_s": round(max(0.0, first - best), 3), "steps": int(result.state.step),
            "batch_size": run.sampler.batch_size, "knn_k": run.render.tree.knn_k,
            "samples_per_level": list(run.render.quadrature.samples_per_level),
@@ -254,4 +246,4 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
 
 
 __all__ = ["BUDGET", "Candidate", "candidates_for", "choose_preset", "config_key", "run_training",
-           "summary_markdown", "train_seconds"]
+           "summary_markdown"]

@@ -225,6 +225,15 @@ class TrainResult:
     initial: dict
     run: RunConfig | None = None
 
+    @property
+    def recorded_seconds(self) -> float:
+        """Training wall time as the loop recorded it (initial cloud, epochs with their compiles,
+        point-cloud rounds), summed over every session of a resumed run."""
+        s = float(self.initial.get("seconds", 0.0))
+        for e in self.history:
+            s += float(e.get("train_seconds", 0.0)) + float(e.get("points", {}).get("seconds", 0.0))
+        return s
+
 
 @dataclasses.dataclass
 class StartFrom:

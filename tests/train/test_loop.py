@@ -97,6 +97,10 @@ def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
     _same_state(second.state, full_run.state)
     np.testing.assert_array_equal(np.asarray(second.scene.points.xyz), np.asarray(full_run.scene.points.xyz))
     np.testing.assert_array_equal(np.asarray(second.scene.points.alive), np.asarray(full_run.scene.points.alive))
+    # the recorded training time sums both sittings: the first's epoch and rounds are in the history
+    h = second.history
+    expected = second.initial["seconds"] + sum(e["train_seconds"] + e.get("points", {}).get("seconds", 0) for e in h)
+    assert second.recorded_seconds == pytest.approx(expected) and h[0]["train_seconds"] == first.history[0]["train_seconds"]
 
 
 def test_resuming_a_run_of_another_config_names_the_fields(full_run, scene_dir):
