@@ -104,7 +104,19 @@ def main(argv=None) -> None:
     print(text)
 
 
+def _earlier_scenes(preset: str, run) -> dict:
+    """Scenes of an earlier invocation with the same preset and schedule (kept unless re-measured)."""
+    path = RESULTS / f"train_benchmark_{preset}.json"
+    if not path.is_file():
+        return {}
+    old = json.loads(path.read_text())
+    same = (old.get("epochs"), old.get("steps_per_epoch"), old.get("batch_size")) == \
+        (run.epochs, run.steps_per_epoch, run.sampler.batch_size)
+    return old.get("scenes", {}) if same else {}
+
+
 def write_results(preset: str, run, scenes: dict) -> str:
+    scenes = {**_earlier_scenes(preset, run), **scenes}  # scenes run one at a time accumulate
     report = {
         "what": "train each benchmark scene from a visual-hull carving; test PSNR/SSIM on full images; "
                 "Chamfer distance (world units, mean of both directions) of the initial and the final cloud "
