@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # One entry point that sets itself up on a fresh machine (Python >= 3.11), then runs:
 #   bash run.sh demo [flags]   the main job on the built-in default scene (see `ne-jax demo --help`)
-#   bash run.sh test [flags]   the test suite (flags go to pytest), then, as a second process, the
+#   bash run.sh test [flags]   the test suite (flags go to pytest; NE_JAX_TEST_WORKERS=2 pytest-xdist
+#                              processes, one test file per worker at a time: one XLA:CPU program
+#                              does not fill two cores; 1 runs in-process), then, as a second process, the
 #                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
 #                              the sharding tests on 4 forced host devices (pytest -m multidevice tests/devices),
 #                              then the notebooks in their fast mode (pytest -m notebook tests/notebooks);
@@ -68,7 +70,10 @@ case "$cmd" in
       case "$arg" in -*) continue ;; esac
       if [ -e "${arg%%::*}" ]; then exec .venv/bin/python -m pytest "$@"; fi
     done
-    .venv/bin/python -m pytest "$@"
+    workers="${NE_JAX_TEST_WORKERS:-2}"
+    xdist=()
+    if [ "$workers" -gt 1 ]; then xdist=(-n "$workers" --dist loadfile); fi
+    .venv/bin/python -m pytest "${xdist[@]}" "$@"
     echo "run.sh: float64 step: JAX_ENABLE_X64=1 pytest tests/hard_cases" >&2
     JAX_ENABLE_X64=1 .venv/bin/python -m pytest tests/hard_cases -q
     echo "run.sh: multi-device step: 4 forced host devices, pytest -m multidevice tests/devices" >&2
