@@ -807,10 +807,13 @@ def main(argv=None) -> int:
                       args.render_worker[1], args.render_worker[2])
         return 0
     if args.study == "training":
-        if args.scene is None:
+        if args.scene is None and not args.summary_only:
             print("--study training needs a scene to train on: pass --scene DIR", file=sys.stderr)
             return 2
         training = _sibling("accuracy_vs_time_training")
+        if args.summary_only:
+            print(training.summary_markdown(training.rewrite_summary(args.out_dir, args.preset)))
+            return 0
         runs = args.runs or Path("runs") / "avt_training" / args.scene.name
         command = " ".join(["python experiments/accuracy_vs_time.py --study training --scene", str(args.scene),
                             "--preset", args.preset, "--runs", str(runs)] + (["--quick"] if args.quick else []))

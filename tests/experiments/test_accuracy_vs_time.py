@@ -256,13 +256,18 @@ def test_choose_preset_rule():
     rows = [own, _row("seed", 21.8, 100, 100, "seed"), _row("better", 22.5, 110, 110),
             _row("best but slow", 23.0, 200, 100), _row("worse", 21.0, 120, 90)]
     ch = tr.choose_preset(rows)
-    assert ch["label"] == "better" and ch["gain_db"] == pytest.approx(0.5)
-    assert ch["seed_noise_db"] == pytest.approx(0.2) and not ch["confirmed"]  # 0.5 dB > 0.2 dB of noise
+    assert ch["label"] == "better" and ch["gain_db"] == pytest.approx(0.5) and not ch["confirmed"]
+    assert ch["seed_noise_db"] == pytest.approx(0.2) and ch["best_affordable_db"] == 22.5
     assert 3 in ch["train_front"] and 4 not in ch["train_front"]  # "worse" is beaten by "own"
+    # within the noise (0.6 dB) of the best affordable PSNR, the cheapest to train wins: the preset itself
     ch = tr.choose_preset([own, _row("seed", 21.4, 100, 100, "seed"), _row("better", 22.5, 110, 110)])
-    assert ch["label"] == "better" and ch["confirmed"]  # within the seed noise (0.6 dB)
+    assert ch["pick"] == 0 and ch["confirmed"]
+    # as good within the noise for half the training time: that is the pick
+    ch = tr.choose_preset([own, _row("seed", 21.8, 100, 100, "seed"), _row("short", 22.1, 50, 100, "steps")])
+    assert ch["label"] == "short" and ch["train_ratio"] == pytest.approx(0.5) and not ch["confirmed"]
+    # nothing better inside the budget
     ch = tr.choose_preset([own, _row("slow", 25.0, 130, 100), _row("slow image", 25.0, 100, 200)])
-    assert ch["pick"] == 0 and ch["confirmed"]  # nothing better inside the budget
+    assert ch["pick"] == 0 and ch["confirmed"]
 
 
 def test_training_study_smoke_and_cache(mini):
