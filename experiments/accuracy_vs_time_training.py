@@ -183,6 +183,7 @@ def plot(res: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401  (matplotlib.ticker below)
 
     rows, ch = res["rows"], res["choice"]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
@@ -201,6 +202,9 @@ def plot(res: dict, path: Path) -> None:
         for r in rows:
             ax.annotate(r["label"], (r[key], r["psnr"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
         ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.tick_params(axis="x", which="minor", labelsize=6)
         ax.set_xlabel(xlabel + ", log")
         ax.set_ylabel("test PSNR (dB)")
         ax.grid(alpha=0.3)
