@@ -799,7 +799,7 @@ def main(argv=None) -> int:
                                                "--study training: the scene to train on (required)")
     ap.add_argument("--preset", default="tiny", choices=("tiny", "default", "paper"),
                     help="--study training: the training preset whose candidates are trained")
-    ap.add_argument("--runs", type=Path, help="--study training: folder of the cached runs (default runs/avt_training)")
+    ap.add_argument("--runs", type=Path, help="--study training: folder of the cached runs (default runs/avt_training/<scene>)")
     args = ap.parse_args(argv)
     if args.render_worker:
         render_worker(args.render_worker[0], Sizes(**{k: tuple(v) if isinstance(v, list) else v
