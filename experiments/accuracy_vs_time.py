@@ -812,7 +812,7 @@ def main(argv=None) -> int:
             return 2
         training = _sibling("accuracy_vs_time_training")
         if args.summary_only:
-            print(training.summary_markdown(training.rewrite_summary(args.out_dir, args.preset)))
+            print(training.combined_markdown(training.rewrite_summary(args.out_dir, args.preset)))
             return 0
         runs = args.runs or Path("runs") / "avt_training" / args.scene.name
         command = " ".join(["python experiments/accuracy_vs_time.py --study training --scene", str(args.scene),

@@ -19,7 +19,11 @@ image), and the preset rule (:func:`choose_preset`): among the candidates that t
 sets the bar, and the pick is the cheapest to train within the seed noise of that bar; the preset is
 confirmed when the pick is the preset itself.
 
-Writes ``accuracy_vs_time_training_<preset>.{json,png,md}`` to ``--out-dir``.
+Writes ``accuracy_vs_time_training_<preset>_<scene>.{json,png,md}`` to ``--out-dir``, then the
+summary over every scene studied there, ``accuracy_vs_time_training_<preset>.{json,png,md}``
+(:func:`combine_scenes`): per candidate the mean over scenes of its PSNR change and of its time
+ratios against the preset, and the same rule applied to those means. The knobs are scene-dependent,
+so a preset is re-chosen from the summary, not from one scene.
 """
 
 from __future__ import annotations
@@ -131,15 +135,17 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     return row
 
 
-def choose_preset(rows: list[dict], budget: float = BUDGET) -> dict:
+def choose_preset(rows: list[dict], budget: float = BUDGET, noise: float | None = None) -> dict:
     """The preset rule applied to ``rows`` (row 0 the preset itself): among the candidates within
     ``budget`` x the preset's training time and time per image, the best PSNR sets the bar; the pick
-    is the cheapest to train of those within the training noise (the seed spread) of that bar."""
+    is the cheapest to train of those within the training noise of that bar (``noise``, by default
+    the spread of the seed rows)."""
     own = rows[0]
     affordable = [i for i, r in enumerate(rows) if r["train_s"] <= budget * own["train_s"]
                   and r["ms_per_image"] <= budget * own["ms_per_image"]]
-    seeds = [r["psnr"] for r in rows if r["knob"] in ("own", "seed")]
-    noise = max(seeds) - min(seeds) if len(seeds) > 1 else None
+    if noise is None:
+        seeds = [r["psnr"] for r in rows if r["knob"] in ("own", "seed")]
+        noise = max(seeds) - min(seeds) if len(seeds) > 1 else None
     best = max(rows[i]["psnr"] for i in affordable)
     level = [i for i in affordable if rows[i]["psnr"] >= best - (noise or 0.0)]
     pick = min(level, key=lambda i: (rows[i]["train_s"], i))
@@ -174,11 +180,13 @@ def summary_markdown(res: dict) -> str:
           f"{ch['train_ratio']:.2f}x the training time). "
           + (f"The `{res['preset']}` preset is confirmed." if ch["confirmed"] else
              f"On this scene the `{res['preset']}` preset should change to it."), "",
-          f"Plot: `experiments/results/accuracy_vs_time_training_{res['preset']}.png`.", ""]
+          f"Plot: `experiments/results/{_stem(res['preset'], Path(res['scene']).name)}.png`.", ""]
     return "\n".join(L)
 
 
-def plot(res: dict, path: Path) -> None:
+def plot(res: dict, path: Path, axes_keys=(("train_s", "training wall time (s)"),
+                                            ("ms_per_image", "ms per test image (min of repeats)")),
+         title: str | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -187,8 +195,8 @@ def plot(res: dict, path: Path) -> None:
 
     rows, ch = res["rows"], res["choice"]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
-    for ax, key, front, xlabel in ((axes[0], "train_s", ch["train_front"], "training wall time (s)"),
-                                   (axes[1], "ms_per_image", ch["render_front"], "ms per test image (min of repeats)")):
+    fronts = (ch["train_front"], ch["render_front"])
+    for ax, (key, xlabel), front in zip(axes, axes_keys, fronts):
         for knob in dict.fromkeys(r["knob"] for r in rows):
             sel = [r for r in rows if r["knob"] == knob]
             ax.scatter([r[key] for r in sel], [r["psnr"] for r in sel], s=26, label=knob, alpha=0.85)
@@ -206,27 +214,104 @@ def plot(res: dict, path: Path) -> None:
         ax.xaxis.set_minor_formatter(matplotlib.ticker.ScalarFormatter())
         ax.tick_params(axis="x", which="minor", labelsize=6)
         ax.set_xlabel(xlabel + ", log")
-        ax.set_ylabel("test PSNR (dB)")
+        ax.set_ylabel(res.get("psnr_label", "test PSNR (dB)"))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6)
-    fig.suptitle(f"{res['preset']} preset on {Path(res['scene']).name}: each point a model trained with that "
-                 f"setting (noisy shared 2-core CPU)", fontsize=9)
+    fig.suptitle(title or f"{res['preset']} preset on {Path(res['scene']).name}: each point a model trained "
+                 f"with that setting (noisy shared 2-core CPU)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-def rewrite_summary(out_dir: Path, preset: str) -> dict:
-    """Re-apply the rule and rewrite the Markdown, the plot and the JSON from the JSON in ``out_dir``."""
+def _stem(preset: str, scene: str | None = None) -> str:
+    return f"accuracy_vs_time_training_{preset}" + (f"_{scene}" if scene else "")
+
+
+def _write(out_dir: Path, stem: str, res: dict, markdown: str, **plot_args) -> None:
     from ne_jax.atomic import atomic_write_json, atomic_write_text
 
-    stem = Path(out_dir) / f"accuracy_vs_time_training_{preset}"
-    res = json.loads(stem.with_suffix(".json").read_text())
-    res["choice"] = choose_preset(res["rows"])
-    plot(res, stem.with_suffix(".png"))
-    atomic_write_json(stem.with_suffix(".json"), res)
-    atomic_write_text(stem.with_suffix(".md"), summary_markdown(res))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    plot(res, out_dir / f"{stem}.png", **plot_args)
+    atomic_write_json(out_dir / f"{stem}.json", res)
+    atomic_write_text(out_dir / f"{stem}.md", markdown)
+
+
+def scene_results(out_dir: Path, preset: str) -> list[dict]:
+    """Every per-scene study of ``preset`` in ``out_dir`` (sorted by scene)."""
+    files = sorted(Path(out_dir).glob(f"{_stem(preset)}_*.json"))
+    return [r for r in (json.loads(f.read_text()) for f in files) if r.get("preset") == preset]
+
+
+def combine_scenes(out_dir: Path, preset: str) -> dict | None:
+    """The summary over the per-scene studies in ``out_dir``: per candidate (those every scene has),
+    the mean over scenes of its PSNR change against the preset and of its training and image time
+    ratios; the rule applied to those means, with the mean seed difference as the noise. Writes
+    ``accuracy_vs_time_training_<preset>.{json,md,png}``; None when no scene was studied."""
+    studies = scene_results(out_dir, preset)
+    if not studies:
+        return None
+    labels = [r["label"] for r in studies[0]["rows"]]
+    by_scene = [{r["label"]: r for r in s["rows"]} for s in studies]
+    labels = [lab for lab in labels if all(lab in b for b in by_scene)]
+    rows = []
+    for lab in labels:
+        per = [(b[lab]["psnr"] - s["rows"][0]["psnr"], b[lab]["train_s"] / s["rows"][0]["train_s"],
+                b[lab]["ms_per_image"] / s["rows"][0]["ms_per_image"]) for s, b in zip(studies, by_scene)]
+        d, t, m = (sum(x) / len(per) for x in zip(*per))
+        rows.append({"label": lab, "knob": by_scene[0][lab]["knob"], "psnr": round(d, 4), "train_s": round(t, 4),
+                     "ms_per_image": round(m, 4), "per_scene_db": [round(p[0], 3) for p in per]})
+    seeds = [r["per_scene_db"] for r in rows if r["knob"] == "seed"]
+    noise = sum(abs(x) for x in seeds[0]) / len(seeds[0]) if seeds else None
+    res = {"study": "training-summary", "preset": preset, "scenes": [Path(s["scene"]).name for s in studies],
+           "commands": [s["command"] for s in studies], "psnr_label": "mean test PSNR change vs preset (dB)",
+           "rows": rows}
+    res["choice"] = choose_preset(rows, noise=noise)
+    _write(Path(out_dir), _stem(preset), res, combined_markdown(res),
+           axes_keys=(("train_s", "mean training time / preset's"), ("ms_per_image", "mean time per image / preset's")),
+           title=f"{preset} preset, mean over {len(studies)} scene(s) ({', '.join(res['scenes'])}): "
+                 f"each point a setting, each scene trained from scratch")
     return res
+
+
+def combined_markdown(res: dict) -> str:
+    rows, ch = res["rows"], res["choice"]
+    scenes = res["scenes"]
+    L = [f"### Trained settings over {len(scenes)} scene(s): `{res['preset']}` preset", "",
+         f"Each candidate trained from scratch on each scene ({', '.join(scenes)}) and scored with its own render "
+         "config; dPSNR is against the preset on the same scene, time ratios against the preset's on the same "
+         "scene, then averaged over the scenes. Per-scene tables: "
+         + ", ".join(f"`{_stem(res['preset'], s)}.md`" for s in scenes) + ".", "",
+         "| candidate | " + " | ".join(f"d {s}" for s in scenes) + " | mean dPSNR | train / own | image / own | fronts |",
+         "|---|" + "---:|" * (len(scenes) + 3) + "---|"]
+    for i, r in enumerate(rows):
+        fronts = "/".join(x for x, f in (("train", ch["train_front"]), ("image", ch["render_front"])) if i in f)
+        L.append(f"| {r['label']} | " + " | ".join(f"{d:+.2f}" for d in r["per_scene_db"])
+                 + f" | {r['psnr']:+.2f} | {r['train_s']:.2f} | {r['ms_per_image']:.2f} | {fronts} |")
+    noise = ch["seed_noise_db"]
+    L += ["", f"Training noise: the second seed differs from the preset by {noise:.2f} dB on average over the "
+          "scenes." if noise is not None else "Training noise: not measured (no second seed).", "",
+          f"Preset rule on the means: among the candidates within {ch['budget']:g}x the preset's training time "
+          f"and time per image, the best mean change ({ch['best_affordable_db']:+.2f} dB) sets the bar; the pick "
+          f"is the cheapest to train within the training noise of it. Pick: **{ch['label']}** "
+          f"({ch['gain_db']:+.2f} dB, {ch['train_ratio']:.2f}x the training time). "
+          + (f"The `{res['preset']}` preset is confirmed." if ch["confirmed"] else
+             f"The `{res['preset']}` preset should change to it."), "",
+          f"Plot: `experiments/results/{_stem(res['preset'])}.png`.", ""]
+    return "\n".join(L)
+
+
+def rewrite_summary(out_dir: Path, preset: str) -> dict:
+    """Re-apply the rule to every per-scene JSON in ``out_dir`` and rewrite their Markdown and plots,
+    then the summary over scenes (returned)."""
+    studies = scene_results(out_dir, preset)
+    if not studies:
+        raise FileNotFoundError(f"--out-dir {out_dir}: expected {_stem(preset)}_<scene>.json from a training "
+                                "study, found none")
+    for res in studies:
+        res["choice"] = choose_preset(res["rows"])
+        _write(Path(out_dir), _stem(preset, Path(res["scene"]).name), res, summary_markdown(res))
+    return combine_scenes(out_dir, preset)
 
 
 def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, preset: str = "tiny",
@@ -237,7 +322,6 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     with no ``run``: the preset cut to 2 epochs of 5 steps without rounds."""
     import jax
 
-    from ne_jax.atomic import atomic_write_json, atomic_write_text
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.train.loop import get_run_preset
 
@@ -258,13 +342,10 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": SHARED_NOTE},
            "jax": jax.__version__, "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
     res["choice"] = choose_preset(rows)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stem = f"accuracy_vs_time_training_{preset}"
-    plot(res, out_dir / f"{stem}.png")
-    atomic_write_json(out_dir / f"{stem}.json", res)
-    atomic_write_text(out_dir / f"{stem}.md", summary_markdown(res))
+    _write(Path(out_dir), _stem(preset, scene_dir.name), res, summary_markdown(res))
+    combine_scenes(Path(out_dir), preset)
     return res
 
 
-__all__ = ["BUDGET", "Candidate", "candidates_for", "choose_preset", "config_key", "rewrite_summary", "run_training",
-           "summary_markdown"]
+__all__ = ["BUDGET", "Candidate", "candidates_for", "choose_preset", "combine_scenes", "combined_markdown",
+           "config_key", "rewrite_summary", "run_training", "scene_results", "summary_markdown"]

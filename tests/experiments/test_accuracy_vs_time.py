@@ -247,7 +247,8 @@ def test_training_candidates_change_one_knob():
 
 
 def _row(label, psnr, train_s, ms, knob="k"):
-    return {"label": label, "knob": knob, "psnr": psnr, "train_s": train_s, "ms_per_image": ms}
+    return {"label": label, "knob": knob, "psnr": psnr, "train_s": train_s, "ms_per_image": ms, "ssim": 0.9,
+            "final_points": 100}
 
 
 def test_choose_preset_rule():
@@ -275,9 +276,10 @@ def test_training_study_smoke_and_cache(mini):
     tr = _training()
     runs, out = root / "avt_training_runs", root / "avt_training"
     res = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)
-    stem = "accuracy_vs_time_training_test"
-    for ext in ("json", "md", "png"):
-        assert (out / f"{stem}.{ext}").stat().st_size > 0, ext
+    stem = f"accuracy_vs_time_training_test_{scene_dir.name}"
+    for name in (stem, "accuracy_vs_time_training_test"):  # the scene's study and the summary over scenes
+        for ext in ("json", "md", "png"):
+            assert (out / f"{name}.{ext}").stat().st_size > 0, (name, ext)
     rows = res["rows"]
     assert [r["label"] for r in rows] == [c.label for c in tr.candidates_for(run, quick=True)]
     for r in rows:
@@ -289,3 +291,38 @@ def test_training_study_smoke_and_cache(mini):
     assert all(r["cached"] for r in again["rows"])
     assert [(r["psnr"], r["train_s"]) for r in again["rows"]] == [(r["psnr"], r["train_s"]) for r in rows]
     assert "Preset rule" in (out / f"{stem}.md").read_text()
+
+
+def test_combine_scenes_averages_changes_against_the_preset(tmp_path):
+    tr = _training()
+
+    def study(scene, rows):
+        return {"preset": "p", "scene": f"/x/{scene}", "command": f"cmd {scene}", "rows": rows, "split": "test",
+                "machine": {"platform": "here"}, "jax": "0", "wall_s": 1.0}
+
+    # scene a: K=16 +1 dB for 1.2x; scene b: K=16 -0.2 dB for 1.4x (mean +0.4 dB, 1.3x: over budget);
+    # steps x0.5: +0.1 / +0.1 dB at half the time on both
+    a = [_row("own", 20.0, 100, 10, "own"), _row("own, seed 1", 20.2, 100, 10, "seed"),
+         _row("K=16", 21.0, 120, 12), _row("steps x0.5", 20.1, 50, 10, "steps")]
+    b = [_row("own", 30.0, 200, 20, "own"), _row("own, seed 1", 29.9, 200, 20, "seed"),
+         _row("K=16", 29.8, 280, 24), _row("steps x0.5", 30.1, 100, 20, "steps"), _row("only b", 31.0, 10, 1)]
+    for scene, rows in (("a", a), ("b", b)):
+        (tmp_path / f"accuracy_vs_time_training_p_{scene}.json").write_text(json.dumps(study(scene, rows)))
+    (tmp_path / "accuracy_vs_time_training_q_c.json").write_text(json.dumps({**study("c", a), "preset": "q"}))
+    res = tr.combine_scenes(tmp_path, "p")
+    assert res["scenes"] == ["a", "b"]
+    rows = {r["label"]: r for r in res["rows"]}
+    assert set(rows) == {"own", "own, seed 1", "K=16", "steps x0.5"}  # only candidates every scene has
+    assert rows["K=16"]["psnr"] == pytest.approx(0.4) and rows["K=16"]["train_s"] == pytest.approx(1.3)
+    assert rows["K=16"]["per_scene_db"] == [pytest.approx(1.0), pytest.approx(-0.2)]
+    assert rows["own"]["psnr"] == 0 and rows["own"]["train_s"] == 1
+    ch = res["choice"]
+    assert ch["seed_noise_db"] == pytest.approx(0.15)  # mean |seed - own| over the scenes
+    assert ch["label"] == "steps x0.5" and not ch["confirmed"]  # K=16 is over the budget on the mean
+    for ext in ("json", "md", "png"):
+        assert (tmp_path / f"accuracy_vs_time_training_p.{ext}").stat().st_size > 0
+    md = (tmp_path / "accuracy_vs_time_training_p.md").read_text()
+    assert "| K=16 | +1.00 | -0.20 | +0.40 | 1.30 |" in md and "Pick: **steps x0.5**" in md
+    assert tr.combine_scenes(tmp_path, "none") is None
+    again = tr.rewrite_summary(tmp_path, "p")  # per-scene summaries rewritten, then the combined one
+    assert again["choice"] == ch and (tmp_path / "accuracy_vs_time_training_p_a.md").is_file()
