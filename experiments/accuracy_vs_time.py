@@ -6,6 +6,7 @@
                                                                       # part 2: a trained model and its edit
                                                                       # (experiments/accuracy_vs_time_image.py)
     python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
+                                          [--candidates full|short] [--train-only I ...]
                                                                       # part 3: models trained with each setting
                                                                       # (experiments/accuracy_vs_time_training.py)
 
@@ -800,6 +801,10 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="tiny", choices=("tiny", "default", "paper"),
                     help="--study training: the training preset whose candidates are trained")
     ap.add_argument("--runs", type=Path, help="--study training: folder of the cached runs (default runs/avt_training/<scene>)")
+    ap.add_argument("--candidates", choices=("full", "short"),
+                    help="--study training: which candidates (default: full for tiny, short for the hour-long presets)")
+    ap.add_argument("--train-only", type=int, nargs="+", metavar="I",
+                    help="--study training: only train these candidates (indices; parallel processes), write nothing")
     args = ap.parse_args(argv)
     if args.render_worker:
         render_worker(args.render_worker[0], Sizes(**{k: tuple(v) if isinstance(v, list) else v
@@ -815,10 +820,14 @@ def main(argv=None) -> int:
             print(training.combined_markdown(training.rewrite_summary(args.out_dir, args.preset)))
             return 0
         runs = args.runs or Path("runs") / "avt_training" / args.scene.name
+        cset = args.candidates or ("full" if args.preset == "tiny" else "short")
         command = " ".join(["python experiments/accuracy_vs_time.py --study training --scene", str(args.scene),
-                            "--preset", args.preset, "--runs", str(runs)] + (["--quick"] if args.quick else []))
-        res = training.run_training(args.scene, runs, args.out_dir, command, preset=args.preset, quick=args.quick)
-        print(training.summary_markdown(res))
+                            "--preset", args.preset, "--runs", str(runs), "--candidates", cset]
+                           + (["--quick"] if args.quick else []))
+        res = training.run_training(args.scene, runs, args.out_dir, command, preset=args.preset, quick=args.quick,
+                                    candidate_set=cset, train_only=args.train_only)
+        if res is not None:
+            print(training.summary_markdown(res))
         return 0
     if args.study == "image":
         image = _sibling("accuracy_vs_time_image")

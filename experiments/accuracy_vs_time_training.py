@@ -2,6 +2,7 @@
 (issue 7, part 3).
 
     python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
+        [--candidates full|short] [--train-only I [I ...]]
 
 The image study (part 2) changes render settings of one trained model; settings judged that way do
 not transfer (a model adapts its features to the K, ``s`` and tree it was trained with). Here every
@@ -55,8 +56,20 @@ class Candidate:
     run: object  # RunConfig
 
 
-def candidates_for(run, quick: bool = False) -> list[Candidate]:
-    """The preset ``run`` and one-knob changes of it (``quick``: two short ones, for the smoke test)."""
+CANDIDATE_SETS = ("full", "short")
+"""``full``: every one-knob change (for ``tiny``: minutes per model); ``short``: the few that matter
+most where a model takes an hour (``default``): K both ways, half the steps, and the paper's
+per-sample settings at the same steps and at a quarter of them (about the same time)."""
+
+
+def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> list[Candidate]:
+    """The preset ``run`` and one-knob changes of it (``quick``: two short ones, for the smoke test;
+    ``candidate_set``: see :data:`CANDIDATE_SETS`)."""
+    from ne_jax.geometry.kdtree import KDTreeConfig
+    from ne_jax.render.quadrature import QuadratureConfig
+
+    if candidate_set not in CANDIDATE_SETS:
+        raise ValueError(f"candidate_set: expected one of {CANDIDATE_SETS}, found {candidate_set!r}")
     t, q = run.render.tree, run.render.quadrature
     spl = tuple(q.samples_per_level)
 
@@ -74,6 +87,17 @@ def candidates_for(run, quick: bool = False) -> list[Candidate]:
     for k in (t.knn_k // 2, 2 * t.knn_k):
         if 1 <= k <= t.num_candidates:
             out.append(Candidate(f"K={k}", "k", with_k(k)))
+    if candidate_set == "short":
+        out.append(Candidate("steps x0.5", "steps", run.with_schedule(steps_per_epoch=run.steps_per_epoch // 2)))
+        paper_tree, paper_q = KDTreeConfig.default(), QuadratureConfig()
+        if (t, q) != (paper_tree, paper_q):
+            paper = run.replace(render=run.render.replace(tree=paper_tree, quadrature=paper_q))
+            label = f"paper sampling (K={paper_tree.knn_k}, {paper_tree.candidate_min} candidates, " \
+                    f"{paper_tree.num_render_levels} levels, s {paper_q.samples_per_level[:paper_tree.num_render_levels]})"
+            out.append(Candidate(label, "paper", paper))
+            out.append(Candidate("paper sampling, steps x0.25", "paper",
+                                 paper.with_schedule(steps_per_epoch=max(1, run.steps_per_epoch // 4))))
+        return out
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))
     if 2 * t.knn_k <= t.num_candidates:
@@ -315,11 +339,14 @@ def rewrite_summary(out_dir: Path, preset: str) -> dict:
 
 
 def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, preset: str = "tiny",
-                 quick: bool = False, run=None, log=None) -> dict:
+                 quick: bool = False, run=None, log=None, candidate_set: str = "full",
+                 train_only: list[int] | None = None) -> dict | None:
     """Train and score every candidate, write JSON, PNG and Markdown; returns the results.
 
     ``run``: the base RunConfig instead of the preset ``preset`` (named by its ``name``); ``quick``
-    with no ``run``: the preset cut to 2 epochs of 5 steps without rounds."""
+    with no ``run``: the preset cut to 2 epochs of 5 steps without rounds. ``train_only``: only train
+    (or resume) the candidates at these indices, with a progress bar, and write nothing else (returns
+    None): hour-long candidates train in parallel processes, then one plain call scores them all."""
     import jax
 
     from ne_jax.data.nerf_synthetic import load_split
@@ -334,8 +361,19 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
         if quick:
             run = run.with_schedule(epochs=2, steps_per_epoch=5).replace(point_rounds=(1, 0))  # no rounds
     preset = run.name
+    cands = candidates_for(run, quick, candidate_set)
+    if train_only is not None:
+        from ne_jax.train.loop import train
+
+        bad = [i for i in train_only if not 0 <= i < len(cands)]
+        if bad:
+            raise IndexError(f"train_only: expected candidate indices in 0..{len(cands) - 1}, found {bad}")
+        for i in train_only:
+            log(f"[{i}: {cands[i].label}] training in {Path(runs) / config_key(cands[i].run)}")
+            train(cands[i].run, scene_dir, Path(runs) / config_key(cands[i].run), resume=True, log=log)
+        return None
     t0 = time.perf_counter()
-    rows = [measure_candidate(c, scene_dir, Path(runs), 1 if quick else 3, log) for c in candidates_for(run, quick)]
+    rows = [measure_candidate(c, scene_dir, Path(runs), 1 if quick else 3, log) for c in cands]
     split = load_split(scene_dir, "test")
     res = {"study": "training", "command": command, "preset": preset, "scene": str(scene_dir), "quick": quick,
            "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
@@ -347,5 +385,5 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     return res
 
 
-__all__ = ["BUDGET", "Candidate", "candidates_for", "choose_preset", "combine_scenes", "combined_markdown",
+__all__ = ["BUDGET", "CANDIDATE_SETS", "Candidate", "candidates_for", "choose_preset", "combine_scenes", "combined_markdown",
            "config_key", "rewrite_summary", "run_training", "scene_results", "summary_markdown"]

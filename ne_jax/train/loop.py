@@ -144,8 +144,14 @@ class RunConfig:
 
     @classmethod
     def default(cls, **changes) -> "RunConfig":
-        """The benchmark's ``default`` preset (200 px) with the paper's per-sample settings."""
-        base = cls(name="default", init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
+        """The benchmark's ``default`` preset (200 px scenes), sized to train in about an hour on one
+        CPU core: K = 16 of 32 candidates, 2 rendering levels, s = 4, 6 (the paper's per-sample
+        settings, :meth:`RenderConfig.default`, cost about 4x the time per step; see the README's
+        accuracy-vs-time study)."""
+        render = RenderConfig.default(tree=KDTreeConfig.default(knn_k=16, candidate_min=32, num_render_levels=2),
+                                      quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)))
+        base = cls(name="default", render=render,
+                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
                    sampler=SamplerConfig(batch_size=2048), train=TrainConfig(lr=5e-3),
                    epochs=12, steps_per_epoch=500, point_rounds=(3, 9))
         return base.with_schedule().replace(**changes)

@@ -246,6 +246,26 @@ def test_training_candidates_change_one_knob():
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
 
 
+def test_short_candidates_for_hour_long_presets():
+    from ne_jax.geometry.kdtree import KDTreeConfig
+    from ne_jax.render.quadrature import QuadratureConfig
+    from ne_jax.train.loop import RunConfig
+
+    tr = _training()
+    own = RunConfig.default()
+    cands = tr.candidates_for(own, candidate_set="short")
+    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper"]
+    paper, paper_short = cands[-2].run, cands[-1].run
+    assert paper.render.tree == KDTreeConfig.default() and paper.render.quadrature == QuadratureConfig()
+    assert paper.replace(render=own.render) == own  # only the per-sample settings change
+    assert paper_short.total_steps == own.total_steps // 4
+    # a preset already at the paper's settings has no paper candidates
+    at_paper = own.replace(render=paper.render)
+    assert "paper" not in [c.knob for c in tr.candidates_for(at_paper, candidate_set="short")]
+    with pytest.raises(ValueError, match="candidate_set: expected one of"):
+        tr.candidates_for(own, candidate_set="most")
+
+
 def _row(label, psnr, train_s, ms, knob="k"):
     return {"label": label, "knob": knob, "psnr": psnr, "train_s": train_s, "ms_per_image": ms, "ssim": 0.9,
             "final_points": 100}
@@ -275,6 +295,11 @@ def test_training_study_smoke_and_cache(mini):
     root, scene_dir, run = mini
     tr = _training()
     runs, out = root / "avt_training_runs", root / "avt_training"
+    # --train-only trains the candidates named and writes nothing else; then one call scores all
+    assert tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, train_only=[1]) is None
+    assert not out.exists()
+    with pytest.raises(IndexError, match=r"train_only: expected candidate indices in 0..1, found \[5\]"):
+        tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, train_only=[5])
     res = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)
     stem = f"accuracy_vs_time_training_test_{scene_dir.name}"
     for name in (stem, "accuracy_vs_time_training_test"):  # the scene's study and the summary over scenes
@@ -284,7 +309,8 @@ def test_training_study_smoke_and_cache(mini):
     assert [r["label"] for r in rows] == [c.label for c in tr.candidates_for(run, quick=True)]
     for r in rows:
         assert math.isfinite(r["psnr"]) and 0.0 < r["ssim"] <= 1.0 and r["train_s"] > 0 and r["ms_per_image"] > 0
-        assert r["steps"] == run.total_steps and not r["cached"]
+        assert r["steps"] == run.total_steps
+    assert [r["cached"] for r in rows] == [False, True]  # candidate 1 was trained by --train-only
     ch = res["choice"]
     assert ch["train_front"] and ch["render_front"] and 0 <= ch["pick"] < len(rows)
     again = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)  # cached: nothing trains
