@@ -191,21 +191,27 @@ def summary_markdown(res: dict) -> str:
          "| candidate | PSNR | dPSNR | SSIM | train s | train / own | ms / image | image / own | points | fronts |",
          "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for i, r in enumerate(rows):
-        fronts = "/".join(x for x, f in (("train", ch["train_front"]), ("image", ch["render_front"])) if i in f)
         L.append(f"| {r['label']} | {r['psnr']:.2f} | {r['psnr'] - own['psnr']:+.2f} | {r['ssim']:.4f} | "
                  f"{r['train_s']:.0f} | {r['train_s'] / own['train_s']:.2f} | {r['ms_per_image']:.0f} | "
-                 f"{r['ms_per_image'] / own['ms_per_image']:.2f} | {r['final_points']} | {fronts} |")
+                 f"{r['ms_per_image'] / own['ms_per_image']:.2f} | {r['final_points']} | {_fronts(ch, i)} |")
     noise = ch["seed_noise_db"]
     L += ["", f"Training noise: the preset with another seed differs by {noise:.2f} dB." if noise is not None
           else "Training noise: not measured (no second seed).", "",
-          f"Preset rule: among the candidates within {ch['budget']:g}x the preset's training time and time "
-          f"per image, the best PSNR ({ch['best_affordable_db']:.2f} dB) sets the bar; the pick is the cheapest "
-          f"to train within the training noise of it. Pick: **{ch['label']}** ({ch['gain_db']:+.2f} dB, "
-          f"{ch['train_ratio']:.2f}x the training time). "
-          + (f"The `{res['preset']}` preset is confirmed." if ch["confirmed"] else
-             f"On this scene the `{res['preset']}` preset should change to it."), "",
-          f"Plot: `experiments/results/{_stem(res['preset'], Path(res['scene']).name)}.png`.", ""]
+          _rule_text(ch, res["preset"], f"the best PSNR ({ch['best_affordable_db']:.2f} dB)", "On this scene the"),
+          "", f"Plot: `experiments/results/{_stem(res['preset'], Path(res['scene']).name)}.png`.", ""]
     return "\n".join(L)
+
+
+def _fronts(ch: dict, i: int) -> str:
+    return "/".join(x for x, f in (("train", ch["train_front"]), ("image", ch["render_front"])) if i in f)
+
+
+def _rule_text(ch: dict, preset: str, bar: str, scope: str) -> str:
+    return (f"Preset rule: among the candidates within {ch['budget']:g}x the preset's training time and time per "
+            f"image, {bar} sets the bar; the pick is the cheapest to train within the training noise of it. "
+            f"Pick: **{ch['label']}** ({ch['gain_db']:+.2f} dB, {ch['train_ratio']:.2f}x the training time). "
+            + (f"The `{preset}` preset is confirmed." if ch["confirmed"] else f"{scope} `{preset}` preset should "
+               "change to it."))
 
 
 def plot(res: dict, path: Path, axes_keys=(("train_s", "training wall time (s)"),
@@ -309,19 +315,14 @@ def combined_markdown(res: dict) -> str:
          "| candidate | " + " | ".join(f"d {s}" for s in scenes) + " | mean dPSNR | train / own | image / own | fronts |",
          "|---|" + "---:|" * (len(scenes) + 3) + "---|"]
     for i, r in enumerate(rows):
-        fronts = "/".join(x for x, f in (("train", ch["train_front"]), ("image", ch["render_front"])) if i in f)
         L.append(f"| {r['label']} | " + " | ".join(f"{d:+.2f}" for d in r["per_scene_db"])
-                 + f" | {r['psnr']:+.2f} | {r['train_s']:.2f} | {r['ms_per_image']:.2f} | {fronts} |")
+                 + f" | {r['psnr']:+.2f} | {r['train_s']:.2f} | {r['ms_per_image']:.2f} | {_fronts(ch, i)} |")
     noise = ch["seed_noise_db"]
     L += ["", f"Training noise: the second seed differs from the preset by {noise:.2f} dB on average over the "
           "scenes." if noise is not None else "Training noise: not measured (no second seed).", "",
-          f"Preset rule on the means: among the candidates within {ch['budget']:g}x the preset's training time "
-          f"and time per image, the best mean change ({ch['best_affordable_db']:+.2f} dB) sets the bar; the pick "
-          f"is the cheapest to train within the training noise of it. Pick: **{ch['label']}** "
-          f"({ch['gain_db']:+.2f} dB, {ch['train_ratio']:.2f}x the training time). "
-          + (f"The `{res['preset']}` preset is confirmed." if ch["confirmed"] else
-             f"The `{res['preset']}` preset should change to it."), "",
-          f"Plot: `experiments/results/{_stem(res['preset'])}.png`.", ""]
+          "On the means: " + _rule_text(ch, res["preset"], f"the best mean change ({ch['best_affordable_db']:+.2f} dB)",
+                                        "The"),
+          "", f"Plot: `experiments/results/{_stem(res['preset'])}.png`.", ""]
     return "\n".join(L)
 
 
