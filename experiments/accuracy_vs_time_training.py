@@ -7,8 +7,8 @@
 The image study (part 2) changes render settings of one trained model; settings judged that way do
 not transfer (a model adapts its features to the K, ``s`` and tree it was trained with). Here every
 candidate is a whole :class:`~ne_jax.train.loop.RunConfig`: the preset with one knob changed (K,
-samples per segment ``s``, both, steps, rays per batch, initial points) plus the preset again with
-another seed, whose spread is the training noise that any difference must exceed. Each candidate is
+samples per segment ``s``, steps, rays per batch, initial points), the joint 2K with half ``s`` (with
+the preset's and with half the steps), plus the preset again with another seed, whose spread is the training noise that any difference must exceed. Each candidate is
 trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the config: a re-run trains only
 what is missing) and scored on the scene's test split with its own render config.
 
@@ -101,7 +101,10 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))
     if 2 * t.knn_k <= t.num_candidates:
-        out.append(Candidate(f"K={2 * t.knn_k}, s x0.5", "joint", with_s(0.5, with_k(2 * t.knn_k))))
+        joint = with_s(0.5, with_k(2 * t.knn_k))
+        out.append(Candidate(f"K={2 * t.knn_k}, s x0.5", "joint", joint))
+        out.append(Candidate(f"K={2 * t.knn_k}, s x0.5, steps x0.5", "joint",
+                             joint.with_schedule(steps_per_epoch=run.steps_per_epoch // 2)))
     for f in (0.5, 2.0):
         out.append(Candidate(f"steps x{f:g}", "steps", run.with_schedule(steps_per_epoch=int(run.steps_per_epoch * f))))
     out.append(Candidate(f"batch x2 ({2 * run.sampler.batch_size} rays)", "batch",
@@ -206,8 +209,8 @@ def _fronts(ch: dict, i: int) -> str:
     return "/".join(x for x, f in (("train", ch["train_front"]), ("image", ch["render_front"])) if i in f)
 
 
-def _rule_text(ch: dict, preset: str, bar: str, scope: str) -> str:
-    return (f"Preset rule: among the candidates within {ch['budget']:g}x the preset's training time and time per "
+def _rule_text(ch: dict, preset: str, bar: str, scope: str, name: str = "Preset rule") -> str:
+    return (f"{name}: among the candidates within {ch['budget']:g}x the preset's training time and time per "
             f"image, {bar} sets the bar; the pick is the cheapest to train within the training noise of it. "
             f"Pick: **{ch['label']}** ({ch['gain_db']:+.2f} dB, {ch['train_ratio']:.2f}x the training time). "
             + (f"The `{preset}` preset is confirmed." if ch["confirmed"] else f"{scope} `{preset}` preset should "
@@ -320,8 +323,8 @@ def combined_markdown(res: dict) -> str:
     noise = ch["seed_noise_db"]
     L += ["", f"Training noise: the second seed differs from the preset by {noise:.2f} dB on average over the "
           "scenes." if noise is not None else "Training noise: not measured (no second seed).", "",
-          "On the means: " + _rule_text(ch, res["preset"], f"the best mean change ({ch['best_affordable_db']:+.2f} dB)",
-                                        "The"),
+          _rule_text(ch, res["preset"], f"the best mean change ({ch['best_affordable_db']:+.2f} dB)", "The",
+                     name="Preset rule on the means"),
           "", f"Plot: `experiments/results/{_stem(res['preset'])}.png`.", ""]
     return "\n".join(L)
 
