@@ -135,11 +135,14 @@ class RunConfig:
 
     @classmethod
     def tiny(cls, **changes) -> "RunConfig":
-        """The demo: 64 px tiny benchmark scenes, ~2 minutes on 2 CPU cores."""
-        render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=32, frontier_capacity=32))
+        """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
+        of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
+        over the four benchmark scenes (README, part 3)."""
+        render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=32, frontier_capacity=32, knn_k=16),
+                                   quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)))
         base = cls(name="tiny", render=render, sampler=SamplerConfig(batch_size=1024),
                    train=TrainConfig(lr=5e-3), points=PointOptConfig(grow_rays=4096),
-                   epochs=6, steps_per_epoch=250, point_rounds=(2, 4))
+                   epochs=6, steps_per_epoch=125, point_rounds=(2, 4))
         return base.with_schedule().replace(**changes)
 
     @classmethod
