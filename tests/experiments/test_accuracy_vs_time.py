@@ -239,10 +239,15 @@ def test_training_candidates_change_one_knob():
     keys = [tr.config_key(c.run) for c in cands]
     assert len(set(keys)) == len(keys)  # every candidate trains its own model
     by = {c.label: c.run for c in cands}
-    k2 = by[f"K={2 * own.render.tree.knn_k}"]
-    assert k2.replace(render=own.render) == own and k2.render.tree.replace(knn_k=own.render.tree.knn_k) == own.render.tree
+    k_half = by[f"K={own.render.tree.knn_k // 2}"]
+    assert k_half.replace(render=own.render) == own
+    assert k_half.render.tree.replace(knn_k=own.render.tree.knn_k) == own.render.tree
+    # K is never above the candidate set: at K = candidates there is no 2K (nor its joint candidates)
+    assert all(c.run.render.tree.knn_k <= own.render.tree.num_candidates for c in cands)
+    wide = own.replace(render=own.render.replace(tree=own.render.tree.replace(knn_k=4)))
+    assert {"K=8", "K=8, s x0.5", "K=8, s x0.5, steps x0.5"} <= {c.label for c in tr.candidates_for(wide)}
     half = by["steps x0.5"]
-    assert half.total_steps == own.total_steps // 2 and half.train.total_steps == half.total_steps
+    assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.train.total_steps == half.total_steps
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
 
 
