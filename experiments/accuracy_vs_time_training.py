@@ -270,20 +270,36 @@ def _write(out_dir: Path, stem: str, res: dict, markdown: str, **plot_args) -> N
     atomic_write_text(out_dir / f"{stem}.md", markdown)
 
 
-def scene_results(out_dir: Path, preset: str) -> list[dict]:
-    """Every per-scene study of ``preset`` in ``out_dir`` (sorted by scene)."""
+def _preset_key(study: dict) -> str | None:
+    """The config hash of the study's preset (older results: the name of its own run directory)."""
+    return study.get("preset_key") or (Path(study["rows"][0]["run_dir"]).name if "run_dir" in study["rows"][0] else None)
+
+
+def scene_results(out_dir: Path, preset: str, key: str | None = None) -> list[dict]:
+    """Every per-scene study of ``preset`` in ``out_dir`` (sorted by scene); with ``key``, only the
+    studies of that preset config (a preset re-chosen since keeps its name, not its hash)."""
     files = sorted(Path(out_dir).glob(f"{_stem(preset)}_*.json"))
-    return [r for r in (json.loads(f.read_text()) for f in files) if r.get("preset") == preset]
+    studies = [r for r in (json.loads(f.read_text()) for f in files) if r.get("preset") == preset]
+    return [r for r in studies if key is None or _preset_key(r) == key]
 
 
-def combine_scenes(out_dir: Path, preset: str) -> dict | None:
-    """The summary over the per-scene studies in ``out_dir``: per candidate (those every scene has),
-    the mean over scenes of its PSNR change against the preset and of its training and image time
-    ratios; the rule applied to those means, with the mean seed difference as the noise. Writes
-    ``accuracy_vs_time_training_<preset>.{json,md,png}``; None when no scene was studied."""
-    studies = scene_results(out_dir, preset)
+def combine_scenes(out_dir: Path, preset: str, key: str | None = None) -> dict | None:
+    """The summary over the per-scene studies in ``out_dir`` (of the preset config ``key``, if given):
+    per candidate (those every scene has), the mean over scenes of its PSNR change against the
+    preset and of its training and image time ratios; the rule applied to those means, with the mean
+    seed difference as the noise. Writes ``accuracy_vs_time_training_<preset>.{json,md,png}``; None
+    when no scene was studied.
+
+    Raises ValueError when the studies are of different configs of the preset and no ``key`` says
+    which to combine."""
+    studies = scene_results(out_dir, preset, key)
     if not studies:
         return None
+    keys = {_preset_key(s) for s in studies}
+    if len(keys) > 1:
+        found = ", ".join(f"{Path(st['scene']).name}: {_preset_key(st)}" for st in studies)
+        raise ValueError(f"{out_dir}: the `{preset}` studies there are of {len(keys)} different preset configs "
+                         f"({found}); re-run the older scenes or move them to another --out-dir")
     labels = [r["label"] for r in studies[0]["rows"]]
     by_scene = [{r["label"]: r for r in s["rows"]} for s in studies]
     labels = [lab for lab in labels if all(lab in b for b in by_scene)]
@@ -379,13 +395,17 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     t0 = time.perf_counter()
     rows = [measure_candidate(c, scene_dir, Path(runs), 1 if quick else 3, log) for c in cands]
     split = load_split(scene_dir, "test")
-    res = {"study": "training", "command": command, "preset": preset, "scene": str(scene_dir), "quick": quick,
+    res = {"study": "training", "command": command, "preset": preset, "preset_key": config_key(run),
+           "scene": str(scene_dir), "quick": quick,
            "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": SHARED_NOTE},
            "jax": jax.__version__, "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
     res["choice"] = choose_preset(rows)
     _write(Path(out_dir), _stem(preset, scene_dir.name), res, summary_markdown(res))
-    combine_scenes(Path(out_dir), preset)
+    others = [Path(r["scene"]).name for r in scene_results(out_dir, preset) if _preset_key(r) != res["preset_key"]]
+    if others:
+        log(f"summary over scenes: leaving out {', '.join(others)} (studied with another `{preset}` config)")
+    combine_scenes(Path(out_dir), preset, key=res["preset_key"])
     return res
 
 

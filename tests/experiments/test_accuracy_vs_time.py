@@ -355,5 +355,11 @@ def test_combine_scenes_averages_changes_against_the_preset(tmp_path):
     md = (tmp_path / "accuracy_vs_time_training_p.md").read_text()
     assert "| K=16 | +1.00 | -0.20 | +0.40 | 1.30 |" in md and "Pick: **steps x0.5**" in md
     assert tr.combine_scenes(tmp_path, "none") is None
+    # a study of another config of the same preset name is not mixed in
+    (tmp_path / "accuracy_vs_time_training_p_z.json").write_text(json.dumps({**study("z", a), "preset_key": "other"}))
+    with pytest.raises(ValueError, match="different preset configs"):
+        tr.combine_scenes(tmp_path, "p")
+    assert tr.combine_scenes(tmp_path, "p", key="other")["scenes"] == ["z"]
+    (tmp_path / "accuracy_vs_time_training_p_z.json").unlink()
     again = tr.rewrite_summary(tmp_path, "p")  # per-scene summaries rewritten, then the combined one
     assert again["choice"] == ch and (tmp_path / "accuracy_vs_time_training_p_a.md").is_file()
