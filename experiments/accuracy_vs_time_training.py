@@ -8,7 +8,8 @@ The image study (part 2) changes render settings of one trained model; settings 
 not transfer (a model adapts its features to the K, ``s`` and tree it was trained with). Here every
 candidate is a whole :class:`~ne_jax.train.loop.RunConfig`: the preset with one knob changed (K,
 samples per segment ``s``, steps, rays per batch, initial points), the joint 2K with half ``s`` (with
-the preset's and with half the steps), plus the preset again with another seed, whose spread is the training noise that any difference must exceed. Each candidate is
+the preset's and with half the steps; a candidate set narrower than 2K is widened to it), plus the
+preset again with another seed, whose spread is the training noise that any difference must exceed. Each candidate is
 trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the config: a re-run trains only
 what is missing) and scored on the scene's test split with its own render config.
 
@@ -74,7 +75,13 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     spl = tuple(q.samples_per_level)
 
     def with_k(k, cfg=run):
-        return cfg.replace(render=cfg.render.replace(tree=cfg.render.tree.replace(knn_k=k)))
+        """K = ``k``; a candidate set too narrow for it is widened to ``k``."""
+        tree = cfg.render.tree
+        wider = {"candidate_min": k} if k > tree.num_candidates else {}
+        return cfg.replace(render=cfg.render.replace(tree=tree.replace(knn_k=k, **wider)))
+
+    def k_label(k):
+        return f"K={k}" + (f" ({k} candidates)" if k > t.num_candidates else "")
 
     def with_s(f, cfg=run):
         rq = cfg.render.quadrature
@@ -85,8 +92,8 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         return [Candidate("own", "own", run), Candidate(f"K={max(1, t.knn_k // 2)}", "k", with_k(max(1, t.knn_k // 2)))]
     out = [Candidate("own", "own", run), Candidate("own, seed 1", "seed", run.replace(seed=run.seed + 1))]
     for k in (t.knn_k // 2, 2 * t.knn_k):
-        if 1 <= k <= t.num_candidates:
-            out.append(Candidate(f"K={k}", "k", with_k(k)))
+        if k >= 1:
+            out.append(Candidate(k_label(k), "k", with_k(k)))
     if candidate_set == "short":
         out.append(Candidate("steps x0.5", "steps", run.with_schedule(steps_per_epoch=run.steps_per_epoch // 2)))
         paper_tree, paper_q = KDTreeConfig.default(), QuadratureConfig()
@@ -100,11 +107,10 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         return out
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))
-    if 2 * t.knn_k <= t.num_candidates:
-        joint = with_s(0.5, with_k(2 * t.knn_k))
-        out.append(Candidate(f"K={2 * t.knn_k}, s x0.5", "joint", joint))
-        out.append(Candidate(f"K={2 * t.knn_k}, s x0.5, steps x0.5", "joint",
-                             joint.with_schedule(steps_per_epoch=run.steps_per_epoch // 2)))
+    joint = with_s(0.5, with_k(2 * t.knn_k))
+    out.append(Candidate(f"{k_label(2 * t.knn_k)}, s x0.5", "joint", joint))
+    out.append(Candidate(f"{k_label(2 * t.knn_k)}, s x0.5, steps x0.5", "joint",
+                         joint.with_schedule(steps_per_epoch=run.steps_per_epoch // 2)))
     for f in (0.5, 2.0):
         out.append(Candidate(f"steps x{f:g}", "steps", run.with_schedule(steps_per_epoch=int(run.steps_per_epoch * f))))
     out.append(Candidate(f"batch x2 ({2 * run.sampler.batch_size} rays)", "batch",

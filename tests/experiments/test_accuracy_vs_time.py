@@ -242,10 +242,15 @@ def test_training_candidates_change_one_knob():
     k_half = by[f"K={own.render.tree.knn_k // 2}"]
     assert k_half.replace(render=own.render) == own
     assert k_half.render.tree.replace(knn_k=own.render.tree.knn_k) == own.render.tree
-    # K is never above the candidate set: at K = candidates there is no 2K (nor its joint candidates)
-    assert all(c.run.render.tree.knn_k <= own.render.tree.num_candidates for c in cands)
-    wide = own.replace(render=own.render.replace(tree=own.render.tree.replace(knn_k=4)))
-    assert {"K=8", "K=8, s x0.5", "K=8, s x0.5, steps x0.5"} <= {c.label for c in tr.candidates_for(wide)}
+    # 2K beyond the candidate set widens the set to 2K (the preset's K = 16 fills its 16 candidates)
+    k, n = own.render.tree.knn_k, own.render.tree.num_candidates
+    assert 2 * k > n
+    for label in (f"K={2 * k} ({2 * k} candidates)", f"K={2 * k} ({2 * k} candidates), s x0.5"):
+        assert by[label].render.tree.knn_k == 2 * k and by[label].render.tree.num_candidates == 2 * k
+    narrow = own.replace(render=own.render.replace(tree=own.render.tree.replace(knn_k=4)))  # 2K fits: no widening
+    labels = {c.label: c.run for c in tr.candidates_for(narrow)}
+    assert {"K=8", "K=8, s x0.5", "K=8, s x0.5, steps x0.5"} <= set(labels)
+    assert labels["K=8"].render.tree.replace(knn_k=4) == narrow.render.tree
     half = by["steps x0.5"]
     assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.train.total_steps == half.total_steps
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
