@@ -9,9 +9,10 @@ not transfer (a model adapts its features to the K, ``s`` and tree it was traine
 candidate is a whole :class:`~ne_jax.train.loop.RunConfig`: the preset with one knob changed (K,
 samples per segment ``s``, steps, rays per batch, initial points), the joint 2K with half ``s`` (with
 the preset's and with half the steps; a candidate set narrower than 2K is widened to it), plus the
-preset again with another seed, whose spread is the training noise that any difference must exceed. Each candidate is
-trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the config: a re-run trains only
-what is missing) and scored on the scene's test split with its own render config.
+preset again with another seed, whose spread is the training noise that any difference must
+exceed. Each candidate is trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the
+config: a re-run trains only what is missing) and scored on the scene's test split with its own
+render config.
 
 Per candidate: test PSNR/SSIM, training wall time as the loop recorded it (initial cloud, epochs with
 their compiles, point-cloud rounds), the time per test image (best of repeats after a compiling call)
