@@ -396,8 +396,9 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
         if bad:
             raise IndexError(f"train_only: expected candidate indices in 0..{len(cands) - 1}, found {bad}")
         for i in train_only:
-            log(f"[{i}: {cands[i].label}] training in {Path(runs) / config_key(cands[i].run)}")
-            train(cands[i].run, scene_dir, Path(runs) / config_key(cands[i].run), resume=True, log=log)
+            run_dir = Path(runs) / config_key(cands[i].run)
+            log(f"[{i}: {cands[i].label}] training in {run_dir}")
+            train(cands[i].run, scene_dir, run_dir, resume=True, log=log)
         return None
     t0 = time.perf_counter()
     rows = [measure_candidate(c, scene_dir, Path(runs), 1 if quick else 3, log) for c in cands]
