@@ -86,6 +86,11 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.resume and args.runs is None:
         parser.error("--resume continues the runs in --runs: pass --runs DIR")
+    if args.runs is not None and not args.resume:
+        held = [n for n in args.scenes if (Path(args.runs) / n / "checkpoints").is_dir()]
+        if held:
+            parser.error(f"--runs {args.runs} already holds runs of {held}: pass --resume to continue them, "
+                         "or another --runs folder to start afresh")
 
     run = get_run_preset(args.preset)
     if args.epochs is not None or args.steps_per_epoch is not None:

@@ -288,7 +288,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--ply", default=None, help="the initial cloud for --init ply")
     tr.add_argument("--background", default="white", choices=["white", "black"])
     tr.add_argument("--seed", type=int, default=0)
-    tr.add_argument("--restart", action="store_true", help="ignore existing checkpoints in --out")
+    tr.add_argument("--restart", action="store_true",
+                    help="start afresh: remove the checkpoints and metrics of an earlier run in --out")
     tr.add_argument("--no-eval", action="store_true", help="skip evaluating the test views after training")
     tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.set_defaults(func=_cmd_train)
@@ -336,7 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--train-ist", action="store_true", help="make the ISTs trainable (kept orthogonal by a loss)")
     ft.add_argument("--optimise-points", action="store_true",
                     help="point-cloud rounds after epochs 1..min(5, epochs-1) (paper: warm-up, then rounds)")
-    ft.add_argument("--restart", action="store_true", help="ignore existing checkpoints in --out")
+    ft.add_argument("--restart", action="store_true",
+                    help="start afresh: remove the checkpoints and metrics of an earlier run in --out")
     ft.add_argument("--no-eval", action="store_true", help="skip evaluating the test views")
     ft.add_argument("--quiet", action="store_true", help="no progress bars")
     ft.set_defaults(func=_cmd_finetune)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
 import time
 import warnings
 from pathlib import Path
@@ -318,7 +319,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         run: the :class:`RunConfig`.
         scene_dir: the scene folder.
         run_dir: output folder (created); resumed from its latest checkpoint when ``resume`` and one
-            exists (the config must be the same: a clear error lists the differences).
+            exists (the config must be the same: a clear error lists the differences). With
+            ``resume=False`` an earlier run's checkpoints and metrics there are removed (logged).
         progress: a progress bar with ETA, running loss and PSNR.
         log: where one-line messages go (``print``; ``lambda s: None`` to silence).
         stop_after_epoch: return after this epoch (as if the run were stopped there).
@@ -335,11 +337,16 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
     views = Views.from_split(split)
     sampler = run.sampler
     pool = build_pool(sampler, split, run.background)  # fails early (named) on empty masks
+    ckpt_dir = run_dir / CHECKPOINT_DIR
     if resume:
         _check_resume_config(run_dir, run)
+    elif ckpt_dir.is_dir():  # a restart: an earlier run's checkpoints would mix with this one's
+        old = sorted(p.name for p in ckpt_dir.iterdir() if p.is_dir())
+        shutil.rmtree(ckpt_dir)
+        (run_dir / METRICS_FILE).unlink(missing_ok=True)
+        log(f"restarting {run_dir} (resume=False): removed the earlier run's checkpoints {old} and its metrics")
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / CONFIG_FILE, json.dumps(config_to_json(run), indent=2) + "\n")
-    ckpt_dir = run_dir / CHECKPOINT_DIR
     k_points, k_model, k_batch, k_rounds = _keys(run.seed)
 
     history: list = []

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import warnings
 
 import jax
@@ -107,6 +108,18 @@ def test_resuming_a_run_of_another_config_names_the_fields(full_run, scene_dir):
     other = tiny_run(train=TrainConfig(lr=1e-3, total_steps=9))
     with pytest.raises(CheckpointError, match=r"train\.lr"):
         train(other, scene_dir, full_run.run_dir, progress=False, log=lambda s: None)
+
+
+def test_a_restart_removes_the_earlier_runs_checkpoints(full_run, scene_dir, tmp_path):
+    out = tmp_path / "again"
+    shutil.copytree(full_run.run_dir, out)
+    lines = []
+    again = train(tiny_run(), scene_dir, out, resume=False, progress=False, log=lines.append, stop_after_epoch=1)
+    assert int(again.state.step) == 3 and [e["epoch"] for e in again.history] == [1]
+    assert any("removed the earlier run's checkpoints" in line for line in lines)
+    steps = sorted(p.name for p in (out / "checkpoints").iterdir() if p.is_dir())
+    assert steps == ["ckpt_00000003"]  # none of the finished run's (steps 3, 6, 9) is left to mix in
+    assert [e["epoch"] for e in json.loads((out / "metrics.json").read_text())["epochs"]] == [1]
 
 
 def test_load_trained_gives_back_the_final_model(full_run, scene_dir):
