@@ -19,6 +19,7 @@ capacity or the tree depth compiles the step once more (counted in ``metrics.jso
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import shutil
@@ -58,6 +59,10 @@ from ne_jax.train.step import make_train_step
 INIT_SOURCES = ("carving", "ply", "ground_truth")
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
+
+# The jitted step per (train config, packing budget), shared by the train() calls of one process: a
+# second run of the same configs (a notebook cell run again, a resume) compiles nothing new.
+_train_step = functools.lru_cache(maxsize=8)(make_train_step)
 CHECKPOINT_DIR = "checkpoints"
 
 
@@ -392,7 +397,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         for epoch in range(first_epoch, run.epochs + 1):
             t0 = time.perf_counter()
             if render not in step_fns:
-                step_fns[render] = make_train_step(run.train, render)
+                step_fns[render] = _train_step(run.train, render)
             step_fn = step_fns[render]
             compiles_before = step_fn._cache_size()
             metrics = []

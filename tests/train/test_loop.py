@@ -93,6 +93,7 @@ def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
     out = tmp_path / "resumed"
     first = train(tiny_run(), scene_dir, out, progress=False, log=lambda s: None, stop_after_epoch=1)
     assert int(first.state.step) == 3
+    assert first.history[0]["compiles"] == 0  # the step compiled for full_run is reused in this process
     second = train(tiny_run(), scene_dir, out, progress=False, log=lambda s: None)
     assert [e["epoch"] for e in second.history] == [1, 2, 3]
     _same_state(second.state, full_run.state)
