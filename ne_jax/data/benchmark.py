@@ -25,8 +25,8 @@ from tqdm.auto import tqdm
 
 from ne_jax.atomic import atomic_directory, atomic_write_json
 from ne_jax.data import synthetic as S
-from ne_jax.data.nerf_synthetic import write_split
-from ne_jax.data.ply import write_ply
+from ne_jax.data.nerf_synthetic import load_split, write_split
+from ne_jax.data.ply import read_ply, write_ply
 
 
 @dataclass(frozen=True)
@@ -154,3 +154,38 @@ def list_variants(root) -> list[tuple[str, str | None, Path]]:
         for edit in meta.get("edits", {}):
             out.append((scene_dir.name, edit, scene_dir / "edits" / edit))
     return out
+
+
+def seen_surface_samples(scene_dir, split: str = "train", tolerance: float = 1e-3) -> np.ndarray:
+    """Which ground-truth surface samples (``scene_dir/points.ply``) a camera of ``split`` sees: inside
+    its image and the first surface along the ray from the camera (within ``tolerance`` world units).
+
+    Returns ``[G]`` bool. A surface no camera sees (an underside, a hidden contact) cannot be
+    reconstructed from the images, so a cloud's completeness is fairer measured on the seen samples.
+    Works for a scene or one of its edits (the mesh is rebuilt from ``scene.json``)."""
+    scene_dir = Path(scene_dir)
+    meta_path = scene_dir / "scene.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"{meta_path}: expected the scene.json of a benchmark scene (made by "
+                                "ne_jax.data.benchmark); not found")
+    meta = json.loads(meta_path.read_text())
+    scene = S.get_scene(meta["scene"], meta["preset"]["detail"])
+    edit = None if meta.get("edit") is None else scene.edits[meta["edit"]]
+    caster = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials)
+    xyz = np.stack([np.asarray(read_ply(scene_dir / "points.ply")[a], np.float64) for a in "xyz"], axis=1)
+    cams = load_split(scene_dir, split)
+    half_x, half_y = cams.cx / cams.fx, cams.cy / cams.fy  # tangents of the half fields of view
+    seen = np.zeros(len(xyz), bool)
+    for c2w in np.asarray(cams.c2w, np.float64):
+        todo = np.nonzero(~seen)[0]
+        if len(todo) == 0:
+            break
+        v = xyz[todo] - c2w[:3, 3]
+        local = v @ c2w[:3, :3]  # camera axes (OpenGL: looking down -z)
+        depth = -local[:, 2]
+        inside = (depth > 0) & (np.abs(local[:, 0]) <= half_x * depth) & (np.abs(local[:, 1]) <= half_y * depth)
+        todo, v = todo[inside], v[inside]
+        dist = np.linalg.norm(v, axis=1)
+        t_hit = caster.hit_distance(np.broadcast_to(c2w[:3, 3], v.shape), v / dist[:, None])
+        seen[todo[t_hit >= dist - tolerance]] = True
+    return seen

@@ -351,6 +351,11 @@ class RayCaster:
         out = self.scene.cast_rays(rays)
         return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs", "primitive_normals")}
 
+    def hit_distance(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Distance ``[n]`` along each ray ``(origins, dirs)`` ``[n, 3]`` (unit ``dirs``) to the first
+        surface it hits; ``inf`` for a miss."""
+        return self._cast(origins, dirs)["t_hit"]
+
     def _occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         rays = self._o3d.core.Tensor(np.concatenate([origins, dirs], 1).astype(np.float32))
         return self.scene.test_occlusions(rays).numpy().astype(bool)

@@ -29,3 +29,24 @@ def test_resume_needs_runs(capsys):
     with pytest.raises(SystemExit):
         _load().main(["--resume"])
     assert "pass --runs DIR" in capsys.readouterr().err
+
+
+def test_a_short_run_writes_the_table(tmp_path):
+    """Two steps on a small scene: the JSON and the table hold both Chamfer measures."""
+    import json
+
+    from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+
+    mini = BenchmarkPreset("mini", resolution=24, train_views=5, val_views=1, test_views=1, supersample=1,
+                           detail=0.4, surface_samples=2000)
+    generate_scene("glossy", mini, tmp_path / "bench", seed=0)
+    _load().main(["--preset", "tiny", "--root", str(tmp_path / "bench"), "--scenes", "glossy", "--epochs", "1",
+                  "--steps-per-epoch", "2", "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "out")])
+    s = json.loads((tmp_path / "out" / "train_benchmark_tiny.json").read_text())["scenes"]["glossy"]
+    assert s["steps"] == 2 and 0.3 < s["seen_share"] < 1.0
+    # the seen-surface measure: the accuracy over all samples, the completeness over the seen ones
+    for when in ("initial", "final"):
+        expected = 0.5 * (s[f"accuracy_{when}"] + s[f"completeness_seen_{when}"])
+        assert s[f"chamfer_seen_{when}"] == pytest.approx(expected, abs=2e-5)
+    table = (tmp_path / "out" / "train_benchmark_tiny.md").read_text()
+    assert "| glossy |" in table and "% seen)" in table
