@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import json
 import os
 import platform
@@ -46,6 +45,8 @@ if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
 from accuracy_vs_time_image import SHARED_NOTE, _scaled_samples, best_time, pareto_front  # noqa: E402
+
+from ne_jax.train.checkpoint import config_key  # noqa: E402
 
 BUDGET = 1.25
 """A preset may cost at most this many times its current training time and time per image."""
@@ -121,14 +122,6 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
                          run.replace(init=dataclasses.replace(run.init, carve=dataclasses.replace(
                              carve, num_points=2 * carve.num_points)))))
     return out
-
-
-def config_key(run) -> str:
-    """A short hash of the whole config: the cache key of a candidate's run directory."""
-    from ne_jax.train.checkpoint import config_to_json
-
-    text = json.dumps(config_to_json(run), sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
 def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, log) -> dict:

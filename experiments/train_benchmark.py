@@ -34,6 +34,7 @@ from ne_jax.data.synthetic import SCENES
 from ne_jax.eval import evaluate_split, save_images
 from ne_jax.pointcloud.init import Views, ground_truth_cloud
 from ne_jax.pointcloud.metrics import chamfer
+from ne_jax.train.checkpoint import config_key
 from ne_jax.train.loop import get_run_preset, initial_cloud, train
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -123,14 +124,13 @@ def main(argv=None) -> None:
 
 
 def _earlier_scenes(preset: str, run, results: Path) -> dict:
-    """Scenes of an earlier invocation with the same preset and schedule (kept unless re-measured)."""
+    """Scenes of an earlier invocation of the same config (kept unless re-measured; a changed preset
+    starts a new table)."""
     path = results / f"train_benchmark_{preset}.json"
     if not path.is_file():
         return {}
     old = json.loads(path.read_text())
-    same = (old.get("epochs"), old.get("steps_per_epoch"), old.get("batch_size")) == \
-        (run.epochs, run.steps_per_epoch, run.sampler.batch_size)
-    return old.get("scenes", {}) if same else {}
+    return old.get("scenes", {}) if old.get("config_key") == config_key(run) else {}
 
 
 def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> str:
@@ -142,7 +142,7 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
                 "only the samples a training camera sees (seen_share of them; ne_jax.data.benchmark."
                 "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it (initial cloud, epochs with "
                 "their compiles, point-cloud rounds; summed over the sittings of a resumed run)",
-        "preset": preset, "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
+        "preset": preset, "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
         "batch_size": run.sampler.batch_size, "background": run.background,
         "scenes": scenes,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},

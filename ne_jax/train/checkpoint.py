@@ -107,6 +107,13 @@ def _config_type(name: str) -> type:
     return obj
 
 
+def config_key(cfg: Any) -> str:
+    """A short hash (12 hex digits) of a whole config: equal for equal configs, different when any
+    field differs (e.g. the cache key of a study's run directory)."""
+    text = json.dumps(config_to_json(cfg), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
 def config_from_json(data: Any) -> Any:
     """Inverse of :func:`config_to_json`; only ``ne_jax`` dataclasses are rebuilt.
 
@@ -453,6 +460,7 @@ __all__ = [
     "CheckpointNotFoundError",
     "config_diff",
     "config_from_json",
+    "config_key",
     "config_to_json",
     "latest_checkpoint",
     "load_checkpoint",

@@ -50,3 +50,18 @@ def test_a_short_run_writes_the_table(tmp_path):
         assert s[f"chamfer_seen_{when}"] == pytest.approx(expected, abs=2e-5)
     table = (tmp_path / "out" / "train_benchmark_tiny.md").read_text()
     assert "| glossy |" in table and "% seen)" in table
+
+
+def test_scenes_accumulate_only_within_one_config(tmp_path):
+    from ne_jax.train.loop import get_run_preset
+
+    tb = _load()
+    run = get_run_preset("tiny")
+    row = {"test_psnr": 20.0, "test_ssim": 0.8, "train_seconds": 1.0, "initial_points": 1, "final_points": 1,
+           "chamfer_initial": 0.1, "chamfer_final": 0.1, "chamfer_ratio": 1.0}
+    tb.write_results("tiny", run, {"cup": row}, tmp_path)
+    assert set(tb._earlier_scenes("tiny", run, tmp_path)) == {"cup"}
+    other = run.replace(seed=run.seed + 1)
+    assert tb._earlier_scenes("tiny", other, tmp_path) == {}  # another config starts a new table
+    tb.write_results("tiny", other, {"stool": row}, tmp_path)
+    assert "| cup |" not in (tmp_path / "train_benchmark_tiny.md").read_text()
