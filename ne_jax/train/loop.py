@@ -59,11 +59,11 @@ from ne_jax.train.step import make_train_step
 INIT_SOURCES = ("carving", "ply", "ground_truth")
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
+CHECKPOINT_DIR = "checkpoints"
 
 # The jitted step per (train config, packing budget), shared by the train() calls of one process: a
 # second run of the same configs (a notebook cell run again, a resume) compiles nothing new.
 _train_step = functools.lru_cache(maxsize=8)(make_train_step)
-CHECKPOINT_DIR = "checkpoints"
 
 
 @dataclasses.dataclass(frozen=True)
