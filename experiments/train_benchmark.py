@@ -52,11 +52,10 @@ def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool 
                                     run.sampler.near, run.sampler.far, progress=progress)
     eval_seconds = time.perf_counter() - t0
     save_images(images, run_dir / "eval_test" / "images", [f"{i:03d}.png" for i in range(len(images))])
-    pts = result.scene.points
-    alive = np.asarray(pts.alive)
+    final = np.asarray(result.scene.points.xyz)[np.asarray(result.scene.points.alive)]
     seen = seen_surface_samples(scene_dir)  # the samples some training camera sees
-    before, after = chamfer(init.xyz, gt.xyz), chamfer(np.asarray(pts.xyz)[alive], gt.xyz)
-    before_seen, after_seen = chamfer(init.xyz, gt.xyz[seen]), chamfer(np.asarray(pts.xyz)[alive], gt.xyz[seen])
+    before, after = chamfer(init.xyz, gt.xyz), chamfer(final, gt.xyz)
+    before_seen, after_seen = chamfer(init.xyz, gt.xyz[seen]), chamfer(final, gt.xyz[seen])
     # accuracy against every sample (a point on a hidden surface is still on the surface),
     # completeness against the seen ones (a hidden surface cannot be recovered from the images)
     seen_initial = 0.5 * (before.accuracy_mean + before_seen.completeness_mean)
@@ -67,7 +66,7 @@ def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool 
         "per_view_psnr": [round(v["psnr"], 2) for v in report["views"]],
         "train_seconds": round(train_seconds, 1), "eval_seconds": round(eval_seconds, 1),
         "steps": int(result.state.step), "skipped_steps": int(result.state.skipped),
-        "initial_points": len(init), "final_points": int(alive.sum()),
+        "initial_points": len(init), "final_points": len(final),
         "chamfer_initial": round(before.mean, 5), "chamfer_final": round(after.mean, 5),
         "chamfer_ratio": round(before.mean / after.mean, 3),
         "accuracy_initial": round(before.accuracy_mean, 5), "accuracy_final": round(after.accuracy_mean, 5),
