@@ -2,6 +2,7 @@
 ray-triangle reference (numpy)."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -72,8 +73,6 @@ def test_seen_samples_match_a_brute_force_reference(root, edit):
 
 def test_no_cameras_in_front_see_nothing(root, tmp_path):
     """Cameras turned away from the scene see no sample."""
-    import shutil
-
     scene_dir = tmp_path / "glossy"
     shutil.copytree(root / "glossy", scene_dir)
     path = scene_dir / "transforms_train.json"
