@@ -2,7 +2,7 @@
 (issue 7, part 3).
 
     python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
-        [--candidates full|short] [--train-only I [I ...]]
+        [--candidates full|short] [--train-only I [I ...]] [--finished-only]
 
 The image study (part 2) changes render settings of one trained model; settings judged that way do
 not transfer (a model adapts its features to the K, ``s`` and tree it was trained with). Here every
@@ -12,7 +12,8 @@ the preset's and with half the steps; a candidate set narrower than 2K is widene
 preset again with another seed, whose spread is the training noise that any difference must
 exceed. Each candidate is trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the
 config: a re-run trains only what is missing) and scored on the scene's test split with its own
-render config.
+render config. ``--finished-only`` scores the candidates whose runs have finished and lists the
+others as not trained yet (an interim result while hour-long candidates still train).
 
 Per candidate: test PSNR/SSIM, training wall time as the loop recorded it (initial cloud, epochs with
 their compiles, point-cloud rounds), the time per test image (best of repeats after a compiling call)
@@ -124,6 +125,14 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     return out
 
 
+def is_finished(run, runs: Path) -> bool:
+    """Whether ``run``'s cached run in ``runs`` has trained all its epochs."""
+    from ne_jax.train.loop import METRICS_FILE
+
+    metrics = Path(runs) / config_key(run) / METRICS_FILE
+    return metrics.is_file() and len(json.loads(metrics.read_text())["epochs"]) >= run.epochs
+
+
 def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, log) -> dict:
     """Train (or reuse) the candidate's run and score it on the test split."""
     import jax
@@ -133,12 +142,11 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     from ne_jax.eval.views import evaluate_split
     from ne_jax.render.quadrature import at_test_time
     from ne_jax.render.renderer import render_image
-    from ne_jax.train.loop import METRICS_FILE, train
+    from ne_jax.train.loop import train
 
     run = c.run
     run_dir = runs / config_key(run)
-    metrics = run_dir / METRICS_FILE
-    cached = metrics.is_file() and len(json.loads(metrics.read_text())["epochs"]) >= run.epochs  # finished
+    cached = is_finished(run, runs)
     result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
     split = load_split(scene_dir, "test")
     near, far = run.sampler.near, run.sampler.far
@@ -198,11 +206,17 @@ def summary_markdown(res: dict) -> str:
                  f"{r['train_s']:.0f} | {r['train_s'] / own['train_s']:.2f} | {r['ms_per_image']:.0f} | "
                  f"{r['ms_per_image'] / own['ms_per_image']:.2f} | {r['final_points']} | {_fronts(ch, i)} |")
     noise = ch["seed_noise_db"]
+    L += _unfinished_lines(res)
     L += ["", f"Training noise: the preset with another seed differs by {noise:.2f} dB." if noise is not None
           else "Training noise: not measured (no second seed).", "",
           _rule_text(ch, res["preset"], f"the best PSNR ({ch['best_affordable_db']:.2f} dB)", "On this scene the"),
           "", f"Plot: `experiments/results/{_stem(res['preset'], Path(res['scene']).name)}.png`.", ""]
     return "\n".join(L)
+
+
+def _unfinished_lines(res: dict, why: str = "Not trained yet, so left out of this interim result") -> list[str]:
+    left = res.get("unfinished")
+    return ["", f"{why}: {'; '.join(left)}."] if left else []
 
 
 def _fronts(ch: dict, i: int) -> str:
@@ -315,6 +329,8 @@ def combine_scenes(out_dir: Path, preset: str, key: str | None = None) -> dict |
     res = {"study": "training-summary", "preset": preset, "scenes": [Path(s["scene"]).name for s in studies],
            "commands": [s["command"] for s in studies], "psnr_label": "mean test PSNR change vs preset (dB)",
            "rows": rows}
+    seen = dict.fromkeys(lab for s in studies for lab in [r["label"] for r in s["rows"]] + s.get("unfinished", []))
+    res["unfinished"] = [lab for lab in seen if lab not in labels]  # not (yet) scored on every scene
     res["choice"] = choose_preset(rows, noise=noise)
     _write(Path(out_dir), _stem(preset), res, combined_markdown(res),
            axes_keys=(("train_s", "mean training time / preset's"), ("ms_per_image", "mean time per image / preset's")),
@@ -337,6 +353,7 @@ def combined_markdown(res: dict) -> str:
         L.append(f"| {r['label']} | " + " | ".join(f"{d:+.2f}" for d in r["per_scene_db"])
                  + f" | {r['psnr']:+.2f} | {r['train_s']:.2f} | {r['ms_per_image']:.2f} | {_fronts(ch, i)} |")
     noise = ch["seed_noise_db"]
+    L += _unfinished_lines(res, "Left out of the means (not scored on every scene yet)")
     L += ["", f"Training noise: the second seed differs from the preset by {noise:.2f} dB on average over the "
           "scenes." if noise is not None else "Training noise: not measured (no second seed).", "",
           _rule_text(ch, res["preset"], f"the best mean change ({ch['best_affordable_db']:+.2f} dB)", "The",
@@ -360,13 +377,15 @@ def rewrite_summary(out_dir: Path, preset: str) -> dict:
 
 def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, preset: str = "tiny",
                  quick: bool = False, run=None, log=None, candidate_set: str = "full",
-                 train_only: list[int] | None = None) -> dict | None:
+                 train_only: list[int] | None = None, finished_only: bool = False) -> dict | None:
     """Train and score every candidate, write JSON, PNG and Markdown; returns the results.
 
     ``run``: the base RunConfig instead of the preset ``preset`` (named by its ``name``); ``quick``
     with no ``run``: the preset cut to 2 epochs of 5 steps without rounds. ``train_only``: only train
     (or resume) the candidates at these indices, with a progress bar, and write nothing else (returns
-    None): hour-long candidates train in parallel processes, then one plain call scores them all."""
+    None): hour-long candidates train in parallel processes, then one plain call scores them all.
+    ``finished_only``: score only the candidates whose runs have finished (the preset's own must have)
+    and record the others under ``unfinished``."""
     import jax
 
     from ne_jax.data.nerf_synthetic import load_split
@@ -393,6 +412,15 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
             log(f"[{i}: {cands[i].label}] training in {run_dir}")
             train(cands[i].run, scene_dir, run_dir, resume=True, log=log)
         return None
+    unfinished = []
+    if finished_only:
+        if not is_finished(run, runs):
+            raise FileNotFoundError(f"finished_only: the preset's own run {Path(runs) / config_key(run)} has not "
+                                    f"finished training; train it first (train_only=[0])")
+        unfinished = [c.label for c in cands if not is_finished(c.run, runs)]
+        cands = [c for c in cands if c.label not in unfinished]
+        if unfinished:
+            log(f"not trained yet, left out: {'; '.join(unfinished)}")
     t0 = time.perf_counter()
     rows = [measure_candidate(c, scene_dir, Path(runs), 1 if quick else 3, log) for c in cands]
     split = load_split(scene_dir, "test")
@@ -400,7 +428,8 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
            "scene": str(scene_dir), "quick": quick,
            "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": SHARED_NOTE},
-           "jax": jax.__version__, "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
+           "jax": jax.__version__, "rows": rows, "unfinished": unfinished,
+           "wall_s": round(time.perf_counter() - t0, 1)}
     res["choice"] = choose_preset(rows)
     _write(Path(out_dir), _stem(preset, scene_dir.name), res, summary_markdown(res))
     others = [Path(r["scene"]).name for r in scene_results(out_dir, preset) if _preset_key(r) != res["preset_key"]]
@@ -411,4 +440,4 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
 
 
 __all__ = ["BUDGET", "CANDIDATE_SETS", "Candidate", "candidates_for", "choose_preset", "combine_scenes", "combined_markdown",
-           "config_key", "rewrite_summary", "run_training", "scene_results", "summary_markdown"]
+           "config_key", "is_finished", "rewrite_summary", "run_training", "scene_results", "summary_markdown"]

@@ -305,22 +305,34 @@ def test_training_study_smoke_and_cache(mini):
     root, scene_dir, run = mini
     tr = _training()
     runs, out = root / "avt_training_runs", root / "avt_training"
-    # --train-only trains the candidates named and writes nothing else; then one call scores all
-    assert tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, train_only=[1]) is None
+    labels = [c.label for c in tr.candidates_for(run, quick=True)]
+    with pytest.raises(FileNotFoundError, match="finished_only: the preset's own run .* has not finished"):
+        tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, finished_only=True)
+    # --train-only trains the candidates named and writes nothing else
+    assert tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, train_only=[0]) is None
     assert not out.exists()
     with pytest.raises(IndexError, match=r"train_only: expected candidate indices in 0..1, found \[5\]"):
         tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, train_only=[5])
+    # --finished-only scores what has trained and names the rest; it trains nothing
+    part = tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, finished_only=True)
+    assert [r["label"] for r in part["rows"]] == labels[:1] and part["unfinished"] == labels[1:]
+    assert not tr.is_finished(tr.candidates_for(run, quick=True)[1].run, runs)
+    md = (out / f"accuracy_vs_time_training_test_{scene_dir.name}.md").read_text()
+    assert f"left out of this interim result: {labels[1]}" in md
+    summary = json.loads((out / "accuracy_vs_time_training_test.json").read_text())
+    assert summary["unfinished"] == labels[1:]
+    # one plain call trains the rest and scores all
     res = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)
     stem = f"accuracy_vs_time_training_test_{scene_dir.name}"
     for name in (stem, "accuracy_vs_time_training_test"):  # the scene's study and the summary over scenes
         for ext in ("json", "md", "png"):
             assert (out / f"{name}.{ext}").stat().st_size > 0, (name, ext)
     rows = res["rows"]
-    assert [r["label"] for r in rows] == [c.label for c in tr.candidates_for(run, quick=True)]
+    assert [r["label"] for r in rows] == labels and res["unfinished"] == []
     for r in rows:
         assert math.isfinite(r["psnr"]) and 0.0 < r["ssim"] <= 1.0 and r["train_s"] > 0 and r["ms_per_image"] > 0
         assert r["steps"] == run.total_steps
-    assert [r["cached"] for r in rows] == [False, True]  # candidate 1 was trained by --train-only
+    assert [r["cached"] for r in rows] == [True, False]  # candidate 0 was trained by --train-only
     ch = res["choice"]
     assert ch["train_front"] and ch["render_front"] and 0 <= ch["pick"] < len(rows)
     again = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)  # cached: nothing trains
