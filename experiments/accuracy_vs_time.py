@@ -823,7 +823,7 @@ def main(argv=None) -> int:
         cset = args.candidates or ("full" if args.preset == "tiny" else "short")
         command = " ".join(["python experiments/accuracy_vs_time.py --study training --scene", str(args.scene),
                             "--preset", args.preset, "--runs", str(runs), "--candidates", cset]
-                           + (["--quick"] if args.quick else []))
+                           + (["--quick"] if args.quick else []) + (["--finished-only"] if args.finished_only else []))
         res = training.run_training(args.scene, runs, args.out_dir, command, preset=args.preset, quick=args.quick,
                                     candidate_set=cset, train_only=args.train_only)
         if res is not None:
