@@ -6,7 +6,7 @@
                                                                       # part 2: a trained model and its edit
                                                                       # (experiments/accuracy_vs_time_image.py)
     python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
-                                          [--candidates full|short] [--train-only I ...]
+                                          [--candidates full|short] [--train-only I ...] [--finished-only]
                                                                       # part 3: models trained with each setting
                                                                       # (experiments/accuracy_vs_time_training.py)
 
@@ -805,6 +805,8 @@ def main(argv=None) -> int:
                     help="--study training: which candidates (default: full for tiny, short for the hour-long presets)")
     ap.add_argument("--train-only", type=int, nargs="+", metavar="I",
                     help="--study training: only train these candidates (indices; parallel processes), write nothing")
+    ap.add_argument("--finished-only", action="store_true",
+                    help="--study training: score only the candidates whose runs have finished (an interim result)")
     args = ap.parse_args(argv)
     if args.render_worker:
         render_worker(args.render_worker[0], Sizes(**{k: tuple(v) if isinstance(v, list) else v
@@ -825,7 +827,7 @@ def main(argv=None) -> int:
                             "--preset", args.preset, "--runs", str(runs), "--candidates", cset]
                            + (["--quick"] if args.quick else []) + (["--finished-only"] if args.finished_only else []))
         res = training.run_training(args.scene, runs, args.out_dir, command, preset=args.preset, quick=args.quick,
-                                    candidate_set=cset, train_only=args.train_only)
+                                    candidate_set=cset, train_only=args.train_only, finished_only=args.finished_only)
         if res is not None:
             print(training.summary_markdown(res))
         return 0

@@ -229,6 +229,16 @@ def test_training_study_needs_a_scene(capsys):
     assert "needs a scene to train on: pass --scene DIR" in capsys.readouterr().err
 
 
+def test_training_study_cli_passes_finished_only(mini, tmp_path):
+    """``--finished-only`` reaches the study: with no finished runs it refuses before training anything."""
+    avt = _load()
+    _, scene_dir, _ = mini
+    with pytest.raises(FileNotFoundError, match="finished_only: the preset's own run .* has not finished"):
+        avt.main(["--study", "training", "--scene", str(scene_dir), "--quick", "--runs", str(tmp_path / "runs"),
+                  "--out-dir", str(tmp_path / "out"), "--finished-only"])
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "out").exists()
+
+
 def test_training_candidates_change_one_knob():
     from ne_jax.train.loop import RunConfig
 
