@@ -174,7 +174,8 @@ def choose_preset(rows: list[dict], budget: float = BUDGET, noise: float | None 
     """The preset rule applied to ``rows`` (row 0 the preset itself): among the candidates within
     ``budget`` x the preset's training time and time per image, the best PSNR sets the bar; the pick
     is the cheapest to train of those within the training noise of that bar (``noise``, by default
-    the spread of the seed rows)."""
+    the spread of the seed rows). A seed row is the preset itself and only measures the noise: it is
+    never the pick."""
     own = rows[0]
     affordable = [i for i, r in enumerate(rows) if r["train_s"] <= budget * own["train_s"]
                   and r["ms_per_image"] <= budget * own["ms_per_image"]]
@@ -182,7 +183,7 @@ def choose_preset(rows: list[dict], budget: float = BUDGET, noise: float | None 
         seeds = [r["psnr"] for r in rows if r["knob"] in ("own", "seed")]
         noise = max(seeds) - min(seeds) if len(seeds) > 1 else None
     best = max(rows[i]["psnr"] for i in affordable)
-    level = [i for i in affordable if rows[i]["psnr"] >= best - (noise or 0.0)]
+    level = [i for i in affordable if rows[i]["psnr"] >= best - (noise or 0.0) and rows[i]["knob"] != "seed"]
     pick = min(level, key=lambda i: (rows[i]["train_s"], i))
     return {"pick": pick, "label": rows[pick]["label"], "gain_db": round(rows[pick]["psnr"] - own["psnr"], 3),
             "train_ratio": round(rows[pick]["train_s"] / own["train_s"], 3), "best_affordable_db": best,

@@ -306,6 +306,9 @@ def test_choose_preset_rule():
     # as good within the noise for half the training time: that is the pick
     ch = tr.choose_preset([own, _row("seed", 21.8, 100, 100, "seed"), _row("short", 22.1, 50, 100, "steps")])
     assert ch["label"] == "short" and ch["train_ratio"] == pytest.approx(0.5) and not ch["confirmed"]
+    # the seed row is the preset itself: cheaper by chance, it is never the pick
+    ch = tr.choose_preset([own, _row("seed", 21.95, 97, 116, "seed"), _row("short", 21.3, 50, 90, "steps")])
+    assert ch["pick"] == 0 and ch["confirmed"]
     # nothing better inside the budget
     ch = tr.choose_preset([own, _row("slow", 25.0, 130, 100), _row("slow image", 25.0, 100, 200)])
     assert ch["pick"] == 0 and ch["confirmed"]
