@@ -415,11 +415,12 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
         return None
     unfinished = []
     if finished_only:
-        if not is_finished(run, runs):
+        finished = [is_finished(c.run, runs) for c in cands]  # cands[0] is the preset's own run
+        if not finished[0]:
             raise FileNotFoundError(f"finished_only: the preset's own run {Path(runs) / config_key(run)} has not "
                                     f"finished training; train it first (train_only=[0])")
-        unfinished = [c.label for c in cands if not is_finished(c.run, runs)]
-        cands = [c for c in cands if c.label not in unfinished]
+        unfinished = [c.label for c, done in zip(cands, finished) if not done]
+        cands = [c for c, done in zip(cands, finished) if done]
         if unfinished:
             log(f"not trained yet, left out: {'; '.join(unfinished)}")
     t0 = time.perf_counter()

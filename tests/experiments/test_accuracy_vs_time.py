@@ -318,7 +318,8 @@ def test_training_study_smoke_and_cache(mini):
     root, scene_dir, run = mini
     tr = _training()
     runs, out = root / "avt_training_runs", root / "avt_training"
-    labels = [c.label for c in tr.candidates_for(run, quick=True)]
+    cands = tr.candidates_for(run, quick=True)
+    labels = [c.label for c in cands]
     with pytest.raises(FileNotFoundError, match="finished_only: the preset's own run .* has not finished"):
         tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, finished_only=True)
     # --train-only trains the candidates named and writes nothing else
@@ -329,7 +330,7 @@ def test_training_study_smoke_and_cache(mini):
     # --finished-only scores what has trained and names the rest; it trains nothing
     part = tr.run_training(scene_dir, runs, out, "cmd", quick=True, run=run, finished_only=True)
     assert [r["label"] for r in part["rows"]] == labels[:1] and part["unfinished"] == labels[1:]
-    assert not tr.is_finished(tr.candidates_for(run, quick=True)[1].run, runs)
+    assert not tr.is_finished(cands[1].run, runs)
     md = (out / f"accuracy_vs_time_training_test_{scene_dir.name}.md").read_text()
     assert f"left out of this interim result: {labels[1]}" in md
     summary = json.loads((out / "accuracy_vs_time_training_test.json").read_text())
