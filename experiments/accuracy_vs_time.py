@@ -3,6 +3,7 @@
     python experiments/accuracy_vs_time.py --study numerics           # part 1: a few minutes on 2 CPU cores
     python experiments/accuracy_vs_time.py --study numerics --quick   # reduced sizes (the smoke test)
     python experiments/accuracy_vs_time.py --study image --run RUN_DIR [--edit bend] [--scene DIR] [--quick]
+                                          [--test-views N] [--timing-passes P]
                                                                       # part 2: a trained model and its edit
                                                                       # (experiments/accuracy_vs_time_image.py)
     python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
@@ -785,6 +786,9 @@ def _sibling(name: str):
     return sys.modules[name]
 
 
+TRAINING_PRESETS = ("tiny", "default", "paper")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--study", choices=("numerics", "image", "training"), default="numerics")
@@ -798,8 +802,14 @@ def main(argv=None) -> int:
     ap.add_argument("--edit", default="bend", help="--study image: the benchmark edit (ground truth <scene>/edits/<edit>)")
     ap.add_argument("--scene", type=Path, help="--study image: the scene folder, if not the one the run recorded; "
                                                "--study training: the scene to train on (required)")
-    ap.add_argument("--preset", default="tiny", choices=("tiny", "default", "paper"),
-                    help="--study training: the training preset whose candidates are trained")
+    ap.add_argument("--test-views", type=int, metavar="N",
+                    help="--study image: score on N evenly spaced test views (default: all)")
+    ap.add_argument("--timing-passes", type=int, metavar="P",
+                    help="--study image: passes re-timing every render, the best kept (default 3)")
+    ap.add_argument("--preset", default="tiny",
+                    help="--study training: the training preset whose candidates are trained (tiny, default or "
+                         "paper); --summary-only: whose results are rewritten (for --study image: the name of "
+                         "the model's run config)")
     ap.add_argument("--runs", type=Path, help="--study training: folder of the cached runs (default runs/avt_training/<scene>)")
     ap.add_argument("--candidates", choices=("full", "short"),
                     help="--study training: which candidates (default: full for tiny, short for the hour-long presets)")
@@ -814,6 +824,9 @@ def main(argv=None) -> int:
                       args.render_worker[1], args.render_worker[2])
         return 0
     if args.study == "training":
+        if args.preset not in TRAINING_PRESETS:
+            print(f"--preset: expected one of {', '.join(TRAINING_PRESETS)}, found {args.preset!r}", file=sys.stderr)
+            return 2
         if args.scene is None and not args.summary_only:
             print("--study training needs a scene to train on: pass --scene DIR", file=sys.stderr)
             return 2
@@ -834,16 +847,20 @@ def main(argv=None) -> int:
     if args.study == "image":
         image = _sibling("accuracy_vs_time_image")
         if args.summary_only:
-            image.rewrite_summary(args.out_dir)
+            image.rewrite_summary(args.out_dir, args.preset)
             return 0
         if args.run is None:
             print("--study image needs a trained model: pass --run RUN_DIR", file=sys.stderr)
             return 2
         command = " ".join(["python experiments/accuracy_vs_time.py --study image --run", str(args.run)]
                            + ([f"--edit {args.edit}"] if args.edit != "bend" else [])
-                           + ([f"--scene {args.scene}"] if args.scene else []) + (["--quick"] if args.quick else []))
-        res = image.run_image(args.run, args.out_dir, command, edit=args.edit, scene=args.scene, quick=args.quick)
-        print((args.out_dir / "accuracy_vs_time_image.md").read_text())
+                           + ([f"--scene {args.scene}"] if args.scene else [])
+                           + ([f"--test-views {args.test_views}"] if args.test_views else [])
+                           + ([f"--timing-passes {args.timing_passes}"] if args.timing_passes else [])
+                           + (["--quick"] if args.quick else []))
+        res = image.run_image(args.run, args.out_dir, command, edit=args.edit, scene=args.scene, quick=args.quick,
+                              test_views=args.test_views, timing_passes=args.timing_passes)
+        print((args.out_dir / f"{image.stem(res['preset'])}.md").read_text())
         return 0 if res["targets"] else 1
     if args.summary_only:
         from ne_jax.atomic import atomic_write_json, atomic_write_text

@@ -8,8 +8,8 @@ set), the candidate-set size (``KDTreeConfig.candidate_min``; the tree is rebuil
 levels (``num_render_levels``; rebuilt), the share of points kept (a seeded random subset of the alive
 points, the others deleted, rebuilt), the integration rule (every deterministic quadrature rule, and
 ``integration="samples"``: shade every sample, no integration), the chunk size (time only: it changes
-no pixel), plus joint settings (everything cheaper, everything richer, the library's ``default``
-preset's tree and quadrature) and the library's ``tiny`` preset when it differs from the model's own.
+no pixel), joint settings (everything cheaper, everything richer, s x1.5 with the spline rule), and the
+library's ``tiny`` and ``default`` render presets' tree and quadrature where they differ from the own.
 
 Each setting is scored on two targets: the trained model on its scene's test split (``original``),
 and the model edited zero-shot by :func:`~ne_jax.edit.model.edit_model` (IST on) on the edited
@@ -18,7 +18,10 @@ scene's test split (``<scene>/edits/<edit>``). Per setting: mean test PSNR and S
 test view 0 after a first, compiling call; ``block_until_ready``) and the compile time (first call
 minus the best). The Pareto front (lower time, higher PSNR) per target goes into the table.
 
-Writes ``accuracy_vs_time_image.{json,png,md}`` to ``--out-dir``.
+Writes ``accuracy_vs_time_image_<preset>.{json,png,md}`` to ``--out-dir`` (``<preset>``: the name of the
+run config the model was trained with). ``--test-views N`` scores on N evenly spaced test views and
+``--timing-passes P`` re-times each render P times (default 3): fewer of both for 200 px models, whose
+images take seconds each on a CPU.
 """
 
 from __future__ import annotations
@@ -76,6 +79,8 @@ class ImageSizes:
     """Passes over all settings re-timing each (compiled) render: the best over passes is kept, so a
     burst of load from other jobs during one setting's pass does not decide its time."""
     points_seed: int = 0
+    test_views: int | None = None
+    """Score on this many evenly spaced test views (``None``: all)."""
 
     @classmethod
     def full(cls) -> ImageSizes:
@@ -193,6 +198,20 @@ def _kept_points(points, frac: float, seed: int):
     new = np.zeros_like(alive)
     new[keep] = True
     return points.replace(alive=jnp.asarray(new))
+
+
+def evenly_spaced(total: int, n: int | None) -> list[int]:
+    """``n`` view indices spread evenly over ``range(total)`` (all of them if ``n`` is ``None`` or >= total)."""
+    if n is None or n >= total:
+        return list(range(total))
+    if n < 1:
+        raise ValueError(f"test views: expected at least 1, found {n}")
+    return [int(i) for i in np.unique(np.round(np.linspace(0, total - 1, n)).astype(int))]
+
+
+def stem(preset: str) -> str:
+    """The results' file stem for a model trained with the run config named ``preset``."""
+    return f"accuracy_vs_time_image_{preset}"
 
 
 def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
@@ -350,19 +369,14 @@ def knob_paragraphs(res: dict) -> list[str]:
     return out
 
 
-def tiny_position(res: dict) -> list[str]:
-    """Sentences placing the library's ``tiny`` preset relative to each front."""
+def own_position(res: dict) -> list[str]:
+    """Sentences placing the own config (the preset the model was trained with) relative to each front."""
     out = []
     for t in res["targets"]:
         rows = t["rows"]
-        idx = next((i for i, r in enumerate(rows) if r["knob"] == "preset" and r["value"] == "tiny"), None)
-        which = "the `tiny` preset"
-        if idx is None:
-            idx = 0
-            which = "the `tiny` preset (identical to the own config here)" if res.get("tiny_is_own") else \
-                "the own config (the `tiny` preset was not measured)"
-        d = front_distance(rows, t["front"], idx)
-        r = rows[idx]
+        d = front_distance(rows, t["front"], 0)
+        r = rows[0]
+        which = f"the own config (`{res['preset']}`)"
         if d["on_front"]:
             out.append(f"{t['target']}: {which} is on the front ({r['psnr']:.2f} dB, {r['ms_per_image']:.0f} ms).")
         else:
@@ -415,12 +429,12 @@ def summary_markdown(res: dict) -> str:
                      f"{r['compile_s']:.1f} | {r['lost_segments']} | {'yes' if r['on_front'] else ''} |")
         L += ["", "</details>", ""]
     L += ["#### Timing noise", ""] + [f"- {s}" for s in timing_noise(res)] + [""]
-    L += ["#### Where the `tiny` preset sits", ""] + [f"- {s}" for s in res["tiny_position"]] + [""]
+    L += ["#### Where the own config sits", ""] + [f"- {s}" for s in res["own_position"]] + [""]
     L += ["#### What each knob buys and costs", ""]
     for p in res["discussion"]:
         L += [p, ""]
-    L += ["Plot: `experiments/results/accuracy_vs_time_image.png`; numbers: "
-          "`experiments/results/accuracy_vs_time_image.json`.", ""]
+    L += [f"Plot: `experiments/results/{stem(res['preset'])}.png`; numbers: "
+          f"`experiments/results/{stem(res['preset'])}.json`.", ""]
     return "\n".join(L)
 
 
@@ -461,37 +475,50 @@ def plot(res: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def rewrite_summary(out_dir: Path) -> dict:
+def write_results(res: dict, out_dir: Path) -> dict:
+    """Derive the text (position of the own config, one paragraph per knob), then write the plot, the
+    JSON and the Markdown under ``out_dir`` with the stem of ``res['preset']``."""
+    from ne_jax.atomic import atomic_write_json, atomic_write_text
+
+    res["own_position"] = own_position(res)
+    res["discussion"] = knob_paragraphs(res)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    base = stem(res["preset"])
+    plot(res, out_dir / f"{base}.png")
+    res["plots"] = [f"{base}.png"]
+    atomic_write_json(out_dir / f"{base}.json", res)
+    atomic_write_text(out_dir / f"{base}.md", summary_markdown(res))
+    return res
+
+
+def rewrite_summary(out_dir: Path, preset: str) -> dict:
     """Rewrite the Markdown (and the derived text in the JSON) and the plot from the JSON in ``out_dir``."""
     import json
 
-    from ne_jax.atomic import atomic_write_json, atomic_write_text
-
-    res = json.loads((out_dir / "accuracy_vs_time_image.json").read_text())
-    res["tiny_position"] = tiny_position(res)
-    res["discussion"] = knob_paragraphs(res)
-    plot(res, out_dir / "accuracy_vs_time_image.png")
-    atomic_write_json(out_dir / "accuracy_vs_time_image.json", res)
-    atomic_write_text(out_dir / "accuracy_vs_time_image.md", summary_markdown(res))
-    return res
+    path = out_dir / f"{stem(preset)}.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no image study results for preset {preset!r} (run the study first)")
+    return write_results(json.loads(path.read_text()), out_dir)
 
 
 # ----------------------------------------------------------------------------------------- run
 
 
 def run_image(run_dir: Path, out_dir: Path, command: str, edit: str = "bend", scene: Path | None = None,
-              quick: bool = False, log=None) -> dict:
+              quick: bool = False, test_views: int | None = None, timing_passes: int | None = None,
+              log=None) -> dict:
     """Load the model, edit it, measure both targets, write JSON, PNG and Markdown; returns the results."""
     import jax
 
-    from ne_jax.atomic import atomic_write_json, atomic_write_text
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.edit.model import edit_model
-    from ne_jax.render.renderer import RenderConfig
     from ne_jax.train.loop import load_trained
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     sz = ImageSizes.quick() if quick else ImageSizes.full()
+    sz = dataclasses.replace(sz, test_views=test_views if test_views is not None else sz.test_views,
+                             timing_passes=timing_passes if timing_passes is not None else sz.timing_passes)
+    evenly_spaced(1, sz.test_views)  # a bad count fails before the model loads
     t0 = time.perf_counter()
     model = load_trained(run_dir)
     if scene is not None:
@@ -504,29 +531,22 @@ def run_image(run_dir: Path, out_dir: Path, command: str, edit: str = "bend", sc
     if not (truth / "transforms_test.json").is_file():
         raise FileNotFoundError(f"edit {edit!r}: expected the edited scene's ground truth in {truth}")
     edited, edit_report = edit_model(model, edit, ist=True, scene_dir=truth)
-    own = model.run.render
-    tiny = RenderConfig.tiny().replace(shading=own.shading)
     res = {"study": "image", "command": command, "sizes": dataclasses.asdict(sz), "run": str(run_dir),
            "preset": model.run.name, "edit": edit, "scene_dir": str(scene_dir),
            "edit_report": {k: v for k, v in edit_report.items() if isinstance(v, (int, float, str, bool))},
-           "tiny_is_own": tiny == own, "knobs": KNOBS,
+           "knobs": KNOBS,
            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": SHARED_NOTE},
            "jax": jax.__version__, "device": str(jax.devices()[0]), "targets": []}
     for name, m, d in (("original", model, scene_dir), ("edit", edited, truth)):
         t1 = time.perf_counter()
-        res["targets"].append(measure_target(name, m, load_split(d, "test"), sz, log))
+        split = load_split(d, "test")
+        split = split.take(evenly_spaced(split.num_views, sz.test_views))
+        res["targets"].append(measure_target(name, m, split, sz, log))
         res["targets"][-1]["wall_s"] = round(time.perf_counter() - t1, 1)
     res["wall_s"] = round(time.perf_counter() - t0, 1)
-    res["tiny_position"] = tiny_position(res)
-    res["discussion"] = knob_paragraphs(res)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    plot(res, out_dir / "accuracy_vs_time_image.png")
-    res["plots"] = ["accuracy_vs_time_image.png"]
-    md = summary_markdown(res)
-    atomic_write_json(out_dir / "accuracy_vs_time_image.json", res)
-    atomic_write_text(out_dir / "accuracy_vs_time_image.md", md)
-    return res
+    return write_results(res, out_dir)
 
 
-__all__ = ["ImageSizes", "Setting", "front_distance", "knob_paragraphs", "measure_target", "pareto_front",
-           "rewrite_summary", "run_image", "settings_for", "summary_markdown", "timing_noise", "tiny_position"]
+__all__ = ["ImageSizes", "Setting", "evenly_spaced", "front_distance", "knob_paragraphs", "measure_target",
+           "own_position", "pareto_front", "rewrite_summary", "run_image", "settings_for", "stem",
+           "summary_markdown", "timing_noise", "write_results"]

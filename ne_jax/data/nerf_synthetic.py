@@ -177,6 +177,16 @@ class SceneSplit:
         """All views' cameras."""
         return [self.camera(i) for i in range(self.num_views)]
 
+    def take(self, indices: Sequence[int]) -> SceneSplit:
+        """The split made of the views ``indices`` (in that order)."""
+        idx = [int(i) for i in indices]
+        if not idx or any(not 0 <= i < self.num_views for i in idx):
+            raise DataError(f"indices: expected a non-empty list of view indices in [0, {self.num_views}) of "
+                            f"split {self.name!r}, found {idx}")
+        return dataclasses.replace(self, images=self.images[idx], c2w=self.c2w[idx],
+                                   file_paths=tuple(self.file_paths[i] for i in idx),
+                                   image_paths=tuple(self.image_paths[i] for i in idx))
+
     def __len__(self) -> int:
         return self.num_views
 

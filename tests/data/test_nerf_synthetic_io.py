@@ -41,6 +41,19 @@ def test_round_trip(make_scene, bit_depth, tol):
         assert np.max(np.abs(loaded["train"].images - data["train"][0])) < 1e-4
 
 
+def test_take_keeps_the_named_views_in_order(make_scene):
+    scene, data = make_scene(splits=("test",), n=3, h=5, w=7)
+    s = load_split(scene, "test")
+    sub = s.take([2, 0])
+    assert sub.num_views == 2 and sub.file_paths == ("./test/r_2", "./test/r_0")
+    np.testing.assert_array_equal(sub.images, s.images[[2, 0]])
+    np.testing.assert_array_equal(sub.c2w, data["test"][1][[2, 0]])
+    assert (sub.fx, sub.cy, sub.name) == (s.fx, s.cy, "test")
+    for bad in ([], [3], [-1]):
+        with pytest.raises(DataError, match=r"indices: expected a non-empty list of view indices in \[0, 3\)"):
+            s.take(bad)
+
+
 def test_png_bytes_are_real_rgba_pngs(make_scene):
     scene, data = make_scene(bit_depth=8)
     with Image.open(scene / "train" / "r_1.png") as im:

@@ -161,10 +161,11 @@ def image_run(mini):
     train(run, scene_dir, root / "run", progress=False, log=lambda s: None)
     t1 = time.perf_counter()
     out = root / "results"
-    assert avt.main(["--study", "image", "--quick", "--run", str(root / "run"), "--out-dir", str(out)]) == 0
+    assert avt.main(["--study", "image", "--run", str(root / "run"), "--out-dir", str(out), "--test-views", "2",
+                     "--timing-passes", "2", "--quick"]) == 0
     t2 = time.perf_counter()
     print(f"image study smoke test: train {t1 - t0:.1f} s, study {t2 - t1:.1f} s")
-    return out, json.loads((out / "accuracy_vs_time_image.json").read_text()), root / "run"
+    return out, json.loads((out / "accuracy_vs_time_image_test.json").read_text()), root / "run"
 
 
 def test_image_study_needs_a_run(capsys):
@@ -175,11 +176,16 @@ def test_image_study_needs_a_run(capsys):
 
 def test_image_study_files_and_schema(image_run):
     out, res, run_dir = image_run
-    for name in ("accuracy_vs_time_image.json", "accuracy_vs_time_image.md", "accuracy_vs_time_image.png"):
+    for name in ("accuracy_vs_time_image_test.json", "accuracy_vs_time_image_test.md",
+                 "accuracy_vs_time_image_test.png"):
         assert (out / name).stat().st_size > 0, name
-    assert res["study"] == "image" and res["command"].endswith("--quick") and res["edit"] == "bend"
-    assert {"targets", "sizes", "machine", "discussion", "tiny_position", "wall_s", "preset"} <= set(res)
+    assert res["study"] == "image" and res["command"].endswith("--test-views 2 --timing-passes 2 --quick")
+    assert res["edit"] == "bend" and res["preset"] == "test"
+    assert res["sizes"]["test_views"] == 2 and res["sizes"]["timing_passes"] == 2
+    assert {"targets", "sizes", "machine", "discussion", "own_position", "wall_s", "preset"} <= set(res)
     assert [t["target"] for t in res["targets"]] == ["original", "edit"]
+    views = min(2, len(json.loads((Path(res["scene_dir"]) / "transforms_test.json").read_text())["frames"]))
+    assert all(t["split"].startswith(f"test ({views} views") for t in res["targets"])
     from ne_jax.train.loop import load_run_config
 
     image = sys.modules["accuracy_vs_time_image"]  # loaded by main
@@ -199,8 +205,29 @@ def test_image_study_files_and_schema(image_run):
         assert t["front"] and all(rows[i]["on_front"] for i in t["front"])
         for i in t["front"]:
             assert not any(b["ms_per_image"] < rows[i]["ms_per_image"] and b["psnr"] > rows[i]["psnr"] for b in rows)
-    md = (out / "accuracy_vs_time_image.md").read_text()
-    assert "Pareto front" in md and "`tiny` preset" in md and res["command"] in md
+    md = (out / "accuracy_vs_time_image_test.md").read_text()
+    assert "Pareto front" in md and "the own config (`test`)" in md and res["command"] in md
+
+
+def test_image_study_summary_only_rewrites_the_presets_files(image_run, capsys):
+    out, res, _ = image_run
+    md = out / "accuracy_vs_time_image_test.md"
+    md.write_text("stale")
+    avt = _load()
+    assert avt.main(["--study", "image", "--summary-only", "--preset", "test", "--out-dir", str(out)]) == 0
+    assert "Pareto front" in md.read_text()
+    with pytest.raises(FileNotFoundError, match="accuracy_vs_time_image_paper.json: no image study results"):
+        avt.main(["--study", "image", "--summary-only", "--preset", "paper", "--out-dir", str(out)])
+
+
+def test_evenly_spaced_views():
+    _load()
+    image = sys.modules["accuracy_vs_time_image"]
+    assert image.evenly_spaced(20, 5) == [0, 5, 10, 14, 19]
+    assert image.evenly_spaced(3, None) == image.evenly_spaced(3, 7) == [0, 1, 2]
+    assert image.evenly_spaced(9, 1) == [0]
+    with pytest.raises(ValueError, match="expected at least 1, found 0"):
+        image.evenly_spaced(9, 0)
 
 
 def test_image_study_sanity(image_run):
@@ -227,6 +254,8 @@ def test_training_study_needs_a_scene(capsys):
     avt = _load()
     assert avt.main(["--study", "training"]) == 2
     assert "needs a scene to train on: pass --scene DIR" in capsys.readouterr().err
+    assert avt.main(["--study", "training", "--preset", "huge", "--scene", "x"]) == 2
+    assert "--preset: expected one of tiny, default, paper, found 'huge'" in capsys.readouterr().err
 
 
 def test_training_study_cli_passes_finished_only(mini, tmp_path):
