@@ -518,7 +518,8 @@ def run_image(run_dir: Path, out_dir: Path, command: str, edit: str = "bend", sc
     sz = ImageSizes.quick() if quick else ImageSizes.full()
     sz = dataclasses.replace(sz, test_views=test_views if test_views is not None else sz.test_views,
                              timing_passes=timing_passes if timing_passes is not None else sz.timing_passes)
-    evenly_spaced(1, sz.test_views)  # a bad count fails before the model loads
+    if sz.test_views is not None and sz.test_views < 1:
+        raise ValueError(f"test_views: expected at least 1 test view, found {sz.test_views}")
     t0 = time.perf_counter()
     model = load_trained(run_dir)
     if scene is not None:

@@ -172,6 +172,8 @@ def test_image_study_needs_a_run(capsys):
     avt = _load()
     assert avt.main(["--study", "image"]) == 2
     assert "needs a trained model: pass --run RUN_DIR" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="test_views: expected at least 1 test view, found 0"):
+        avt.main(["--study", "image", "--run", "no_such_run", "--test-views", "0"])
 
 
 def test_image_study_files_and_schema(image_run):
