@@ -305,8 +305,11 @@ def test_short_candidates_for_hour_long_presets():
     tr = _training()
     own = RunConfig.default()
     cands = tr.candidates_for(own, candidate_set="short")
-    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper"]
-    paper, paper_short = cands[-2].run, cands[-1].run
+    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates"]
+    paper, paper_short = cands[5].run, cands[6].run
+    half = cands[7].run.render.tree
+    assert (half.num_candidates, half.knn_k) == (16, 16) and cands[7].label == "16 candidates (K=16)"
+    assert cands[7].run.replace(render=own.render) == own  # only the candidate set changes
     assert paper.render.tree == KDTreeConfig.default() and paper.render.quadrature == QuadratureConfig()
     assert paper.replace(render=own.render) == own  # only the per-sample settings change
     assert paper_short.total_steps == own.total_steps // 4
