@@ -438,6 +438,19 @@ def summary_markdown(res: dict) -> str:
     return "\n".join(L)
 
 
+def _label_groups(front: list[dict], db: float) -> list[list[dict]]:
+    """Front rows (fastest first) in groups whose points would overlap on the plot: within 15% in time
+    and ``db`` in PSNR of the group's first row; one label per group."""
+    groups: list[list[dict]] = []
+    for r in front:
+        g = groups[-1] if groups else None
+        if g and r["ms_per_image"] <= 1.15 * g[0]["ms_per_image"] and abs(r["psnr"] - g[0]["psnr"]) <= db:
+            g.append(r)
+        else:
+            groups.append([r])
+    return groups
+
+
 def plot(res: dict, path: Path) -> None:
     import matplotlib
 
@@ -460,9 +473,11 @@ def plot(res: dict, path: Path) -> None:
         own = rows[0]
         ax.scatter([own["ms_per_image"]], [own["psnr"]], marker="*", s=180, color="red", zorder=5,
                    label=f"own config ({res['preset']})")
-        for r in f:
-            ax.annotate(r["label"], (r["ms_per_image"], r["psnr"]), fontsize=6, xytext=(3, 3),
-                        textcoords="offset points")
+        for g in _label_groups(f, 0.03 * (max(r["psnr"] for r in rows) - min(r["psnr"] for r in rows))):
+            ax.annotate("\n".join(r["label"] for r in g), (g[0]["ms_per_image"], g[0]["psnr"]), fontsize=6,
+                        xytext=(3, 3), textcoords="offset points", va="bottom")
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(lo, hi + 0.12 * (hi - lo))  # room for the stacked labels above the front
         ax.set_xscale("log")
         ax.set_xlabel("ms per image (min of repeats, log)")
         ax.set_ylabel("test PSNR (dB)")
