@@ -13,7 +13,10 @@ preset again with another seed, whose spread is the training noise that any diff
 exceed. Each candidate is trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the
 config: a re-run trains only what is missing) and scored on the scene's test split with its own
 render config. ``--finished-only`` scores the candidates whose runs have finished and lists the
-others as not trained yet (an interim result while hour-long candidates still train).
+others as not trained yet (an interim result while hour-long candidates still train). A run's test
+PSNR/SSIM is kept in its folder (:data:`SCORE_FILE`) and reused while the scene, the run's step and
+the library's source are unchanged; the time per image is measured again at every scoring, so the
+time ratios always come from one process.
 
 Per candidate: test PSNR/SSIM, training wall time as the loop recorded it (initial cloud, epochs with
 their compiles, point-cloud rounds), the time per test image (best of repeats after a compiling call)
@@ -139,11 +142,37 @@ def is_finished(run, runs: Path) -> bool:
     return metrics.is_file() and len(json.loads(metrics.read_text())["epochs"]) >= run.epochs
 
 
+SCORE_FILE = "study_score.json"
+"""In a run's folder: its last test PSNR/SSIM and what they depend on (see :func:`score_key`)."""
+
+
+def library_fingerprint() -> str:
+    """A hash of the ``ne_jax`` package's source files: a kept score is stale once the library changes."""
+    import hashlib
+
+    import ne_jax
+
+    root = Path(ne_jax.__file__).parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def score_key(scene_dir: Path, step: int) -> dict:
+    """What a run's test score depends on besides the run: the scene's test split (path and the time its
+    transforms file was written), the run's step and the library's source."""
+    transforms = Path(scene_dir).resolve() / "transforms_test.json"
+    return {"scene": str(transforms.parent), "transforms_mtime_ns": transforms.stat().st_mtime_ns,
+            "step": int(step), "library": library_fingerprint()}
+
+
 def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, log) -> dict:
     """Train (or reuse) the candidate's run and score it on the test split."""
     import jax
     import numpy as np
 
+    from ne_jax.atomic import atomic_write_json
     from ne_jax.data.nerf_synthetic import load_split, parse_background
     from ne_jax.eval.views import evaluate_split
     from ne_jax.render.quadrature import at_test_time
@@ -156,15 +185,21 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
     split = load_split(scene_dir, "test")
     near, far = run.sampler.near, run.sampler.far
-    report, _ = evaluate_split(run.render, result.state.params, result.scene, split, run.background, near, far,
-                               progress=False)
+    key = score_key(scene_dir, result.state.step)
+    kept = json.loads((run_dir / SCORE_FILE).read_text()) if (run_dir / SCORE_FILE).is_file() else {}
+    score_cached = all(kept.get(k) == v for k, v in key.items())
+    if not score_cached:
+        report, _ = evaluate_split(run.render, result.state.params, result.scene, split, run.background, near,
+                                   far, progress=False)
+        kept = {**key, "psnr": round(report["psnr"], 4), "ssim": round(report["ssim"], 5)}
+        atomic_write_json(run_dir / SCORE_FILE, kept)
     cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
     fn = functools.partial(render_image, cfg, result.state.params, result.scene, split.cameras()[0],
                            parse_background(run.background), near, far, progress=False)
     first, best = best_time(fn, repeats)
     jax.clear_caches()
     row = {"label": c.label, "knob": c.knob, "run_dir": str(run_dir), "cached": bool(cached),
-           "psnr": round(report["psnr"], 4), "ssim": round(report["ssim"], 5),
+           "score_cached": score_cached, "psnr": kept["psnr"], "ssim": kept["ssim"],
            "train_s": round(result.recorded_seconds, 1), "ms_per_image": round(1e3 * best, 2),
            "compile_s": round(max(0.0, first - best), 3), "steps": int(result.state.step),
            "batch_size": run.sampler.batch_size, "knn_k": run.render.tree.knn_k,
@@ -172,7 +207,8 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
            "initial_points": int(result.initial.get("points", 0)),
            "final_points": int(np.asarray(result.scene.points.alive).sum())}
     log(f"[{c.label}] PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}, train {row['train_s']:.0f} s"
-        f"{' (cached run)' if cached else ''}, {row['ms_per_image']:.0f} ms per image")
+        f"{' (cached run)' if cached else ''}, {row['ms_per_image']:.0f} ms per image"
+        f"{' (kept score)' if score_cached else ''}")
     return row
 
 
@@ -448,4 +484,5 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
 
 
 __all__ = ["BUDGET", "CANDIDATE_SETS", "Candidate", "candidates_for", "choose_preset", "combine_scenes", "combined_markdown",
-           "config_key", "is_finished", "rewrite_summary", "run_training", "scene_results", "summary_markdown"]
+           "config_key", "is_finished", "library_fingerprint", "rewrite_summary", "run_training", "scene_results",
+           "score_key", "summary_markdown", "SCORE_FILE"]

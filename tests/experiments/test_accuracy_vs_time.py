@@ -383,9 +383,19 @@ def test_training_study_smoke_and_cache(mini):
     assert [r["cached"] for r in rows] == [True, False]  # candidate 0 was trained by --train-only
     ch = res["choice"]
     assert ch["train_front"] and ch["render_front"] and 0 <= ch["pick"] < len(rows)
+    assert [r["score_cached"] for r in rows] == [True, False]  # --finished-only scored candidate 0
     again = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)  # cached: nothing trains
-    assert all(r["cached"] for r in again["rows"])
-    assert [(r["psnr"], r["train_s"]) for r in again["rows"]] == [(r["psnr"], r["train_s"]) for r in rows]
+    assert all(r["cached"] and r["score_cached"] for r in again["rows"])
+    assert [(r["psnr"], r["ssim"], r["train_s"]) for r in again["rows"]] == \
+        [(r["psnr"], r["ssim"], r["train_s"]) for r in rows]
+    # a kept score is evaluated again once what it depends on changes, and gives the same numbers
+    kept_path = Path(rows[1]["run_dir"]) / tr.SCORE_FILE
+    kept = json.loads(kept_path.read_text())
+    assert kept["step"] == run.total_steps and kept["library"] == tr.library_fingerprint()
+    kept_path.write_text(json.dumps({**kept, "library": "stale", "psnr": -1.0}))
+    fresh = tr.run_training(scene_dir, runs, out, "cmd --quick", quick=True, run=run)
+    assert [r["score_cached"] for r in fresh["rows"]] == [True, False]
+    assert fresh["rows"][1]["psnr"] == rows[1]["psnr"] and json.loads(kept_path.read_text())["psnr"] == rows[1]["psnr"]
     assert "Preset rule" in (out / f"{stem}.md").read_text()
 
 
