@@ -146,8 +146,10 @@ SCORE_FILE = "study_score.json"
 """In a run's folder: its last test PSNR/SSIM and what they depend on (see :func:`score_key`)."""
 
 
+@functools.lru_cache(maxsize=1)
 def library_fingerprint() -> str:
-    """A hash of the ``ne_jax`` package's source files: a kept score is stale once the library changes."""
+    """A hash of the ``ne_jax`` package's source files: a kept score is stale once the library changes.
+    Computed once per process (every candidate's score key uses it)."""
     import hashlib
 
     import ne_jax
