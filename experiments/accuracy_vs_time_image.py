@@ -5,7 +5,8 @@
 From the model's own render config (the one it was trained with) one knob is changed at a time:
 samples per segment ``s`` (``samples_per_level`` scaled, at least 2), ``K`` (capped by the candidate
 set), the candidate-set size (``KDTreeConfig.candidate_min``; the tree is rebuilt), the rendering
-levels (``num_render_levels``; rebuilt), the share of points kept (a seeded random subset of the alive
+levels (``num_render_levels``; rebuilt), the traversal frontier (``frontier_capacity``: nodes kept
+per ray and level, the rest counted as lost segments), the share of points kept (a seeded random subset of the alive
 points, the others deleted, rebuilt), the integration rule (every deterministic quadrature rule, and
 ``integration="samples"``: shade every sample, no integration), the chunk size (time only: it changes
 no pixel), joint settings (everything cheaper, everything richer, s x1.5 with the spline rule), and the
@@ -51,6 +52,8 @@ KNOBS = {
     "k": "K, neighbours per sample (at most the candidate-set size)",
     "candidates": "candidate-set size (KDTreeConfig.candidate_min; tree rebuilt)",
     "levels": "rendering levels (KDTreeConfig.num_render_levels; tree rebuilt)",
+    "frontier": "traversal frontier (KDTreeConfig.frontier_capacity: nodes kept per ray and level; "
+                "the rest are counted as lost segments)",
     "points": "share of the alive points kept (seeded random subset, the rest deleted; tree rebuilt)",
     "rule": "integration: quadrature rule, or 'samples' (shade each sample, no integration)",
     "chunk": "rays per compiled call (time only: no pixel changes, accuracy copied from the own config)",
@@ -67,6 +70,7 @@ class ImageSizes:
     ks: tuple[int, ...]
     candidate_scales: tuple[int, ...]
     level_deltas: tuple[int, ...]
+    frontier_scales: tuple[float, ...]
     keep: tuple[float, ...]
     rules: tuple[str, ...] | None
     """``None``: every deterministic rule."""
@@ -85,14 +89,15 @@ class ImageSizes:
     @classmethod
     def full(cls) -> ImageSizes:
         return cls(s_scales=(0.5, 0.75, 1.0, 1.5, 2.0), ks=(4, 8, 16, 32), candidate_scales=(1, 2, 4),
-                   level_deltas=(-1, 1), keep=(1.0, 0.5, 0.25), rules=None, samples_integration=True,
+                   level_deltas=(-1, 1), frontier_scales=(0.25, 0.5), keep=(1.0, 0.5, 0.25), rules=None,
+                   samples_integration=True,
                    chunk_scales=(0.25, 0.5, 2.0, 4.0), joint=True, presets=("tiny", "default"), repeats=3,
                    timing_passes=3)
 
     @classmethod
     def quick(cls) -> ImageSizes:
-        return cls(s_scales=(1.0, 2.0), ks=(), candidate_scales=(), level_deltas=(), keep=(1.0, 0.25),
-                   rules=(), samples_integration=False, chunk_scales=(4.0,), joint=False, presets=(), repeats=1)
+        return cls(s_scales=(1.0, 2.0), ks=(), candidate_scales=(), level_deltas=(), frontier_scales=(),
+                   keep=(1.0, 0.25), rules=(), samples_integration=False, chunk_scales=(4.0,), joint=False, presets=(), repeats=1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,6 +162,9 @@ def settings_for(own, sz: ImageSizes) -> list[Setting]:
         if lv >= 1:
             cfg = _with_levels(own, lv)
             out.append(Setting("levels", f"levels={lv} (candidates {cfg.tree.num_candidates})", lv, cfg))
+    for f in sz.frontier_scales:
+        fc = max(2, int(round(t.frontier_capacity * f)))
+        out.append(Setting("frontier", f"frontier={fc}", fc, own.replace(tree=t.replace(frontier_capacity=fc))))
     for f in sz.keep:
         out.append(Setting("points", f"points {f:.0%}", f, own, keep=f))
     rules = DETERMINISTIC_RULES if sz.rules is None else sz.rules
@@ -340,7 +348,7 @@ def knob_paragraphs(res: dict) -> list[str]:
     against the own config on each target, the best value and whether the knob reaches the front."""
     out = []
     targets = res["targets"]
-    for knob in ("samples", "k", "candidates", "levels", "points", "rule", "chunk", "joint", "preset"):
+    for knob in ("samples", "k", "candidates", "levels", "frontier", "points", "rule", "chunk", "joint", "preset"):
         parts, notes = [], []
         for t in targets:
             rows = [r for r in t["rows"] if r["knob"] == knob and "same_as" not in r]

@@ -232,6 +232,19 @@ def test_evenly_spaced_views():
         image.evenly_spaced(9, 0)
 
 
+def test_image_frontier_settings_change_only_the_frontier():
+    _load()
+    image = sys.modules["accuracy_vs_time_image"]
+    from ne_jax.render.renderer import RenderConfig
+
+    own = RenderConfig.tiny()
+    rows = [s for s in image.settings_for(own, image.ImageSizes.full()) if s.knob == "frontier"]
+    assert [s.value for s in rows] == [4, 8]  # a quarter and a half of the tiny tree's 16
+    for s in rows:
+        assert s.cfg.tree == own.tree.replace(frontier_capacity=s.value)
+        assert s.cfg.replace(tree=own.tree) == own
+
+
 def test_image_study_sanity(image_run):
     _, res, _ = image_run
     for t in res["targets"]:
