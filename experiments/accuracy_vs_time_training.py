@@ -66,9 +66,10 @@ class Candidate:
 CANDIDATE_SETS = ("full", "short")
 """``full``: every one-knob change (for ``tiny``: minutes per model); ``short``: the few that matter
 most where a model takes an hour (``default``): K both ways, half the steps, the paper's per-sample
-settings at the same steps and at a quarter of them (about the same time), and half the candidate set
-(part 2 found the candidate-set size sets the time per image). New candidates go at the end, so the
-indices of ``--train-only`` keep naming the same runs."""
+settings at the same steps and at a quarter of them (about the same time), half the candidate set,
+and a quarter of the traversal frontier (part 2 on the ``default`` model found the frontier, not the
+candidate set, sets the time per image). New candidates go at the end, so the indices of
+``--train-only`` keep naming the same runs."""
 
 
 def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> list[Candidate]:
@@ -116,6 +117,9 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         if half.num_candidates < t.num_candidates:
             out.append(Candidate(f"{half.num_candidates} candidates (K={half.knn_k})", "candidates",
                                  run.replace(render=run.render.replace(tree=half))))
+        narrow = t.replace(frontier_capacity=max(2, t.frontier_capacity // 4))
+        out.append(Candidate(f"frontier={narrow.frontier_capacity}", "frontier",
+                             run.replace(render=run.render.replace(tree=narrow))))
         return out
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))

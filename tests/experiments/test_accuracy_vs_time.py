@@ -318,11 +318,13 @@ def test_short_candidates_for_hour_long_presets():
     tr = _training()
     own = RunConfig.default()
     cands = tr.candidates_for(own, candidate_set="short")
-    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates"]
+    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates", "frontier"]
     paper, paper_short = cands[5].run, cands[6].run
     half = cands[7].run.render.tree
     assert (half.num_candidates, half.knn_k) == (16, 16) and cands[7].label == "16 candidates (K=16)"
     assert cands[7].run.replace(render=own.render) == own  # only the candidate set changes
+    assert cands[8].label == "frontier=16" and cands[8].run.render.tree == own.render.tree.replace(frontier_capacity=16)
+    assert cands[8].run.replace(render=own.render) == own
     assert paper.render.tree == KDTreeConfig.default() and paper.render.quadrature == QuadratureConfig()
     assert paper.replace(render=own.render) == own  # only the per-sample settings change
     assert paper_short.total_steps == own.total_steps // 4
