@@ -6,8 +6,8 @@ From the model's own render config (the one it was trained with) one knob is cha
 samples per segment ``s`` (``samples_per_level`` scaled, at least 2), ``K`` (capped by the candidate
 set), the candidate-set size (``KDTreeConfig.candidate_min``; the tree is rebuilt), the rendering
 levels (``num_render_levels``; rebuilt), the traversal frontier (``frontier_capacity``: nodes kept
-per ray and level, the rest counted as lost segments), the share of points kept (a seeded random subset of the alive
-points, the others deleted, rebuilt), the integration rule (every deterministic quadrature rule, and
+per ray and level, the rest counted as lost segments), the share of points kept (a seeded random
+subset of the alive points, the others deleted, rebuilt), the integration rule (every deterministic quadrature rule, and
 ``integration="samples"``: shade every sample, no integration), the chunk size (time only: it changes
 no pixel), joint settings (everything cheaper, everything richer, s x1.5 with the spline rule), and the
 library's ``tiny`` and ``default`` render presets' tree and quadrature where they differ from the own.
@@ -97,7 +97,8 @@ class ImageSizes:
     @classmethod
     def quick(cls) -> ImageSizes:
         return cls(s_scales=(1.0, 2.0), ks=(), candidate_scales=(), level_deltas=(), frontier_scales=(),
-                   keep=(1.0, 0.25), rules=(), samples_integration=False, chunk_scales=(4.0,), joint=False, presets=(), repeats=1)
+                   keep=(1.0, 0.25), rules=(), samples_integration=False, chunk_scales=(4.0,), joint=False,
+                   presets=(), repeats=1)
 
 
 @dataclasses.dataclass(frozen=True)
