@@ -7,10 +7,11 @@ samples per segment ``s`` (``samples_per_level`` scaled, at least 2), ``K`` (cap
 set), the candidate-set size (``KDTreeConfig.candidate_min``; the tree is rebuilt), the rendering
 levels (``num_render_levels``; rebuilt), the traversal frontier (``frontier_capacity``: nodes kept
 per ray and level, the rest counted as lost segments), the share of points kept (a seeded random
-subset of the alive points, the others deleted, rebuilt), the integration rule (every deterministic quadrature rule, and
-``integration="samples"``: shade every sample, no integration), the chunk size (time only: it changes
-no pixel), joint settings (everything cheaper, everything richer, s x1.5 with the spline rule), and the
-library's ``tiny`` and ``default`` render presets' tree and quadrature where they differ from the own.
+subset of the alive points, the others deleted, rebuilt), the integration rule (every deterministic
+quadrature rule, and ``integration="samples"``: shade every sample, no integration), the chunk size
+(time only: it changes no pixel), joint settings (everything cheaper, everything richer, s x1.5 with
+the spline rule), and the library's ``tiny`` and ``default`` render presets' tree and quadrature
+where they differ from the own.
 
 Each setting is scored on two targets: the trained model on its scene's test split (``original``),
 and the model edited zero-shot by :func:`~ne_jax.edit.model.edit_model` (IST on) on the edited
@@ -349,7 +350,7 @@ def knob_paragraphs(res: dict) -> list[str]:
     against the own config on each target, the best value and whether the knob reaches the front."""
     out = []
     targets = res["targets"]
-    for knob in ("samples", "k", "candidates", "levels", "frontier", "points", "rule", "chunk", "joint", "preset"):
+    for knob in (k for k in KNOBS if k != "own"):
         parts, notes = [], []
         for t in targets:
             rows = [r for r in t["rows"] if r["knob"] == knob and "same_as" not in r]
