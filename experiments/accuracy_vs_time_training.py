@@ -68,8 +68,8 @@ CANDIDATE_SETS = ("full", "short")
 most where a model takes an hour (``default``): K both ways, half the steps, the paper's per-sample
 settings at the same steps and at a quarter of them (about the same time), half the candidate set,
 and a quarter of the traversal frontier (part 2 on the ``default`` model found the frontier, not the
-candidate set, sets the time per image). New candidates go at the end, so the indices of
-``--train-only`` keep naming the same runs."""
+candidate set, sets the time per image; ``full`` ends with it too). New candidates go at the end, so
+the indices of ``--train-only`` keep naming the same runs."""
 
 
 def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> list[Candidate]:
@@ -97,6 +97,9 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         return cfg.replace(render=cfg.render.replace(
             quadrature=dataclasses.replace(rq, samples_per_level=_scaled_samples(tuple(rq.samples_per_level), f))))
 
+    narrow = t.replace(frontier_capacity=max(2, t.frontier_capacity // 4))
+    narrow_frontier = Candidate(f"frontier={narrow.frontier_capacity}", "frontier",
+                                run.replace(render=run.render.replace(tree=narrow)))
     if quick:
         return [Candidate("own", "own", run), Candidate(f"K={max(1, t.knn_k // 2)}", "k", with_k(max(1, t.knn_k // 2)))]
     out = [Candidate("own", "own", run), Candidate("own, seed 1", "seed", run.replace(seed=run.seed + 1))]
@@ -117,9 +120,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         if half.num_candidates < t.num_candidates:
             out.append(Candidate(f"{half.num_candidates} candidates (K={half.knn_k})", "candidates",
                                  run.replace(render=run.render.replace(tree=half))))
-        narrow = t.replace(frontier_capacity=max(2, t.frontier_capacity // 4))
-        out.append(Candidate(f"frontier={narrow.frontier_capacity}", "frontier",
-                             run.replace(render=run.render.replace(tree=narrow))))
+        out.append(narrow_frontier)
         return out
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))
@@ -135,6 +136,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     out.append(Candidate(f"initial points x2 ({2 * carve.num_points})", "points",
                          run.replace(init=dataclasses.replace(run.init, carve=dataclasses.replace(
                              carve, num_points=2 * carve.num_points)))))
+    out.append(narrow_frontier)
     return out
 
 

@@ -308,6 +308,9 @@ def test_training_candidates_change_one_knob():
     half = by["steps x0.5"]
     assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.train.total_steps == half.total_steps
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
+    narrow = own.render.tree.frontier_capacity // 4  # appended last, so earlier indices keep their runs
+    assert cands[-1].label == f"frontier={narrow}" and cands[-1].run.replace(render=own.render) == own
+    assert cands[-1].run.render.tree == own.render.tree.replace(frontier_capacity=narrow)
 
 
 def test_short_candidates_for_hour_long_presets():
