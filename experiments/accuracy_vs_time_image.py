@@ -6,7 +6,10 @@ From the model's own render config (the one it was trained with) one knob is cha
 samples per segment ``s`` (``samples_per_level`` scaled, at least 2), ``K`` (capped by the candidate
 set), the candidate-set size (``KDTreeConfig.candidate_min``; the tree is rebuilt), the rendering
 levels (``num_render_levels``; rebuilt), the traversal frontier (``frontier_capacity``: nodes kept
-per ray and level, the rest counted as lost segments), the share of points kept (a seeded random
+per ray and level; a chunk of rays that overflows it is rendered again at twice the width, see
+:func:`~ne_jax.render.renderer.render_chunked`, so at render time it is a starting width: it trades
+re-rendered chunks against the width, and ``overflow_rays`` counts the rays of the timed view that
+overflow it before any growth), the share of points kept (a seeded random
 subset of the alive points, the others deleted, rebuilt), the integration rule (every deterministic
 quadrature rule, and ``integration="samples"``: shade every sample, no integration), the chunk size
 (time only: it changes no pixel), joint settings (everything cheaper, everything richer, s x1.5 with
@@ -53,8 +56,8 @@ KNOBS = {
     "k": "K, neighbours per sample (at most the candidate-set size)",
     "candidates": "candidate-set size (KDTreeConfig.candidate_min; tree rebuilt)",
     "levels": "rendering levels (KDTreeConfig.num_render_levels; tree rebuilt)",
-    "frontier": "traversal frontier (KDTreeConfig.frontier_capacity: nodes kept per ray and level; "
-                "the rest are counted as lost segments)",
+    "frontier": "traversal frontier (KDTreeConfig.frontier_capacity: nodes kept per ray and level; a chunk "
+                "that overflows it is rendered again at twice the width, so no segment is lost)",
     "points": "share of the alive points kept (seeded random subset, the rest deleted; tree rebuilt)",
     "rule": "integration: quadrature rule, or 'samples' (shade each sample, no integration)",
     "chunk": "rays per compiled call (time only: no pixel changes, accuracy copied from the own config)",
@@ -196,6 +199,13 @@ def settings_for(own, sz: ImageSizes) -> list[Setting]:
     return out
 
 
+def _overflow_rays(scene, tree_cfg, rays) -> int:
+    """How many of ``rays`` overflow ``tree_cfg``'s traversal capacities (before any growth)."""
+    from ne_jax.geometry.intersect import intersect
+
+    return int(np.sum(np.asarray(intersect(scene.tree, rays, tree_cfg).overflow) > 0))
+
+
 def _kept_points(points, frac: float, seed: int):
     """``points`` with a seeded random ``1 - frac`` of its alive points deleted."""
     import jax.numpy as jnp
@@ -229,6 +239,7 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
     import jax
 
     from ne_jax.data.nerf_synthetic import parse_background
+    from ne_jax.data.rays import camera_rays
     from ne_jax.eval.views import evaluate_split
     from ne_jax.render.quadrature import at_test_time
     from ne_jax.render.renderer import PointScene, render_image
@@ -239,6 +250,7 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
     bg = parse_background(run.background)
     near, far = run.sampler.near, run.sampler.far
     camera = split.cameras()[0]
+    rays0 = camera_rays(camera, near, far)
     points = model.scene.points
     scenes: dict = {}
     done: dict = {}
@@ -257,7 +269,8 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
                "rule": st.cfg.quadrature.rule, "integration": st.cfg.integration, "knn_k": st.cfg.tree.knn_k,
                "candidates": st.cfg.tree.num_candidates, "levels": st.cfg.tree.num_render_levels,
                "chunk": st.cfg.chunk, "alive_points": int(np.asarray(scene.points.alive).sum()),
-               "tree_depth": int(scene.tree.depth), "tree_build_s": round(build_s, 3)}
+               "tree_depth": int(scene.tree.depth), "tree_build_s": round(build_s, 3),
+               "overflow_rays": _overflow_rays(scene, st.cfg.tree, rays0)}
         if (st.cfg, st.keep) in done and not st.time_only:  # the same render as an earlier setting
             prev = done[(st.cfg, st.keep)]
             row.update({k: prev[k] for k in ("psnr", "ssim", "lost_segments", "ms_per_image", "compile_s")})
@@ -430,13 +443,16 @@ def summary_markdown(res: dict) -> str:
             mark = " (own)" if i == 0 else ""
             L.append(f"| {r['label']}{mark} | {r['knob']} | {_f(r['psnr'])} | {r['d_psnr']:+.2f} | {r['ssim']:.4f} | "
                      f"{r['ms_per_image']:.0f} | {r['time_ratio']:.2f} | {r['compile_s']:.1f} |")
+        grows = "overflow_rays" in t["rows"][0]  # results before it was recorded have no such column
         L += ["", f"<details><summary>all {len(t['rows'])} settings ({t['target']})</summary>", "",
-              "| setting | knob | PSNR | SSIM | ms / image | compile s | lost segments | front |",
-              "|---|---|---:|---:|---:|---:|---:|---|"]
+              "| setting | knob | PSNR | SSIM | ms / image | compile s | lost segments |"
+              + (" rays overflowing (view 0, before growth) |" if grows else "") + " front |",
+              "|---|---|---:|---:|---:|---:|---:|" + ("---:|" if grows else "") + "---|"]
         for r in t["rows"]:
             note = f" (= {r['same_as']})" if "same_as" in r else (" (time only)" if r["time_only"] else "")
             L.append(f"| {r['label']}{note} | {r['knob']} | {_f(r['psnr'])} | {r['ssim']:.4f} | {r['ms_per_image']:.0f} | "
-                     f"{r['compile_s']:.1f} | {r['lost_segments']} | {'yes' if r['on_front'] else ''} |")
+                     f"{r['compile_s']:.1f} | {r['lost_segments']} |" + (f" {r['overflow_rays']} |" if grows else "")
+                     + f" {'yes' if r['on_front'] else ''} |")
         L += ["", "</details>", ""]
     L += ["#### Timing noise", ""] + [f"- {s}" for s in timing_noise(res)] + [""]
     L += ["#### Where the own config sits", ""] + [f"- {s}" for s in res["own_position"]] + [""]

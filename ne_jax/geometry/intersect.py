@@ -24,12 +24,16 @@ face plane (parallel axis, origin on the face) counts as inside.
 Capacities are static (``cfg.frontier_capacity``, ``cfg.max_segments``); what does not fit is
 counted per ray (``frontier_overflow``: nodes dropped from a frontier, whose whole subtree is lost;
 ``segment_overflow``: emitted segments beyond the slots). ``intersect_checked`` (host) re-allocates
-and retries until nothing overflows.
+and retries until nothing overflows. With ``cfg.first_pass_frontier`` every ray is walked at that
+narrower width first and only the rays that overflow it are walked again at full width (a share
+``cfg.retry_share`` of the call's rays at most), which gives the full width's segments at a
+fraction of its cost.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -118,10 +122,10 @@ def _compact(mask, values, capacity):
     return out, kept, total
 
 
-def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig, first_emit: int):
+def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig, first_emit: int, f_cap: int):
     dtype = origin.dtype
     depth = tree.depth
-    f_cap, m_cap = cfg.frontier_capacity, cfg.max_segments
+    m_cap = cfg.max_segments
     par, inv = _parallel_and_inverse(direction)
     min_len = (cfg.min_hit_factor * tree.spacing).astype(dtype)
     test = functools.partial(slab_intersect, origin=origin, inv_dir=inv, parallel=par, near=near, far=far, min_len=min_len)
@@ -220,9 +224,19 @@ def intersect(tree: KDTree, rays: Rays, cfg: KDTreeConfig = KDTreeConfig(), incl
         )
     first = tree.depth - cfg.num_render_levels - (1 if include_grow_level else 0)
     dtype = rays.origin.dtype
-    fn = jax.vmap(lambda o, d, n, f: _traverse_one(tree, o, d, n, f, cfg, first))
-    out = fn(rays.origin, rays.direction.astype(dtype), rays.near.astype(dtype), rays.far.astype(dtype))
-    return Segments(*out)
+    args = (rays.origin, rays.direction.astype(dtype), rays.near.astype(dtype), rays.far.astype(dtype))
+
+    def walk(width, *ray_args):
+        return Segments(*jax.vmap(lambda o, d, n, f: _traverse_one(tree, o, d, n, f, cfg, first, width))(*ray_args))
+
+    if cfg.first_pass_frontier is None:
+        return walk(cfg.frontier_capacity, *args)
+    narrow = walk(cfg.first_pass_frontier, *args)
+    n = rays.num_rays
+    retry = jnp.nonzero(narrow.frontier_overflow > 0, size=min(n, math.ceil(cfg.retry_share * n)), fill_value=n)[0]
+    wide = walk(cfg.frontier_capacity, *(a[jnp.minimum(retry, n - 1)] for a in args))
+    # unused retry slots hold index n: their writes are dropped
+    return jax.tree_util.tree_map(lambda a, b: a.at[retry].set(b, mode="drop"), narrow, wide)
 
 
 def intersect_checked(
@@ -234,9 +248,9 @@ def intersect_checked(
 ) -> tuple[Segments, KDTreeConfig]:
     """Host-side: run :func:`intersect`, and while any ray overflows, re-allocate and retry.
 
-    The frontier capacity doubles on frontier overflow; the segment slots grow to the next power of
-    two above the largest count found. Returns the complete segments and the config that fit (reuse
-    it for later batches: the same capacities mean no recompilation).
+    The frontier capacity doubles on frontier overflow (and the walk becomes one pass); the segment
+    slots grow to the next power of two above the largest count found. Returns the complete segments
+    and the config that fit (reuse it for later batches: the same capacities mean no recompilation).
 
     Raises:
         RuntimeError: still overflowing after ``max_tries`` attempts.
@@ -248,8 +262,8 @@ def intersect_checked(
         if f_over == 0 and s_over == 0:
             return seg, cfg
         changes = {}
-        if f_over > 0:
-            changes["frontier_capacity"] = 2 * cfg.frontier_capacity
+        if f_over > 0:  # one pass at twice the width (the retries of a two-pass walk may have run out)
+            changes.update(frontier_capacity=2 * cfg.frontier_capacity, first_pass_frontier=None)
         if s_over > 0:
             need = int(jnp.max(seg.num_emitted))
             changes["max_segments"] = max(2 * cfg.max_segments, int(2 ** np.ceil(np.log2(need))))

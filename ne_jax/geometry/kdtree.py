@@ -117,6 +117,18 @@ class KDTreeConfig:
     frontier_capacity: int = 64
     """Nodes kept per ray and level during traversal; more are dropped and counted as overflow."""
 
+    # "added_later" (ne_jax.train.checkpoint.ADDED_LATER): left out of run keys at the default
+    first_pass_frontier: int | None = dataclasses.field(default=None, metadata={"added_later": True})
+    """Two-pass traversal (None: one pass): every ray is walked first with this narrower frontier,
+    and the rays that overflow it are walked again at ``frontier_capacity``, at most
+    ``ceil(retry_share * R)`` of them per call (the first ones). While the retries fit, the segments
+    equal a single pass at ``frontier_capacity``; a ray beyond the share keeps the narrow pass's
+    segments and its overflow is counted. Most rays of a surface-like cloud need few nodes per
+    level, and the traversal's cost follows the frontier's width."""
+
+    retry_share: float = dataclasses.field(default=1.0 / 16.0, metadata={"added_later": True})
+    """Two-pass traversal: the share of a call's rays that may be walked again at full width."""
+
     max_segments: int = 32
     """Segment slots per ray in :class:`~ne_jax.geometry.intersect.Segments`; more are counted."""
 
@@ -152,6 +164,10 @@ class KDTreeConfig:
         need(self.min_hit_factor >= 0, "min_hit_factor", ">= 0")
         need(self.knn_eps_factor > 0, "knn_eps_factor", "> 0")
         need(self.frontier_capacity >= 2, "frontier_capacity", "an integer >= 2")
+        if self.first_pass_frontier is not None:
+            need(2 <= self.first_pass_frontier < self.frontier_capacity, "first_pass_frontier",
+                 f"None or an integer in [2, frontier_capacity) = [2, {self.frontier_capacity})")
+        need(0 < self.retry_share <= 1, "retry_share", "a share in (0, 1]")
         need(self.max_segments >= 1, "max_segments", "an integer >= 1")
         need(self.exact_chunk >= 1, "exact_chunk", "an integer >= 1")
 

@@ -70,7 +70,13 @@ class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
 # ---------------------------------------------------------------- configs as typed JSON
 
 
-def config_to_json(cfg: Any) -> Any:
+ADDED_LATER = "added_later"
+"""Metadata flag of a config field added after runs were keyed (``dataclasses.field(metadata=
+{ADDED_LATER: True})``): at its default it is left out of :func:`config_key`, so the keys of runs
+made before it existed stay valid."""
+
+
+def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
     """A frozen config dataclass as nested JSON data with the type information to rebuild it.
 
     Dataclasses become ``{"__type__": "module:QualName", **fields}`` (fields as
@@ -79,12 +85,15 @@ def config_to_json(cfg: Any) -> Any:
     if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
         out = {"__type__": f"{type(cfg).__module__}:{type(cfg).__qualname__}"}
         for f in dataclasses.fields(cfg):
-            out[f.name] = config_to_json(getattr(cfg, f.name))
+            value = getattr(cfg, f.name)
+            if _for_key and f.metadata.get(ADDED_LATER) and value == f.default:
+                continue
+            out[f.name] = config_to_json(value, _for_key)
         return out
     if isinstance(cfg, tuple):
-        return {"__tuple__": [config_to_json(v) for v in cfg]}
+        return {"__tuple__": [config_to_json(v, _for_key) for v in cfg]}
     if isinstance(cfg, list):
-        return [config_to_json(v) for v in cfg]
+        return [config_to_json(v, _for_key) for v in cfg]
     if cfg is None or isinstance(cfg, (bool, int, float, str)):
         return cfg
     raise TypeError(f"config value of type {type(cfg).__name__} cannot be stored in a checkpoint: {cfg!r}")
@@ -109,8 +118,9 @@ def _config_type(name: str) -> type:
 
 def config_key(cfg: Any) -> str:
     """A short hash (12 hex digits) of a whole config: equal for equal configs, different when any
-    field differs (e.g. the cache key of a study's run directory)."""
-    text = json.dumps(config_to_json(cfg), sort_keys=True)
+    field differs (e.g. the cache key of a study's run directory; fields flagged :data:`ADDED_LATER`
+    count only away from their default)."""
+    text = json.dumps(config_to_json(cfg, _for_key=True), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
@@ -455,6 +465,7 @@ def _names(prefix: str, tree: Any) -> list[str]:
 
 
 __all__ = [
+    "ADDED_LATER",
     "FORMAT_VERSION",
     "CheckpointError",
     "CheckpointNotFoundError",

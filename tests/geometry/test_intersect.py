@@ -157,9 +157,55 @@ def test_overflow_counted_and_retry_reallocates():
     compare(tree, rays, full, cfg)
 
 
+SEG_FIELDS = ("t_lo", "t_hi", "node", "level", "valid", "frontier_overflow", "segment_overflow", "num_emitted")
+
+
+@pytest.mark.parametrize("name", ["sphere_700", "coplanar", "random_300"])
+def test_two_pass_equals_one_wide_pass(name):
+    xyz, alive = padded(name)
+    wide = CFG.replace(depth=10, frontier_capacity=64, max_segments=32)
+    tree = build_tree(xyz, alive, wide)
+    o, d = hard_rays(tree, xyz, alive, n_boxes=4)
+    rays = make_rays(o, d)
+    one = intersect(tree, rays, wide)
+    assert int(jnp.max(one.frontier_overflow)) == 0
+    narrow = intersect(tree, rays, wide.replace(frontier_capacity=2))
+    assert int(jnp.sum(narrow.frontier_overflow > 0)) > 0  # the second pass has rays to walk again
+    two = intersect(tree, rays, wide.replace(first_pass_frontier=2, retry_share=1.0))
+    for f in SEG_FIELDS:
+        np.testing.assert_array_equal(np.asarray(getattr(two, f)), np.asarray(getattr(one, f)), err_msg=f)
+
+
+def test_two_pass_beyond_the_retry_share_is_counted():
+    xyz, alive = CLOUDS["sphere_700"]
+    wide = CFG.replace(frontier_capacity=64, max_segments=32)
+    tree = build_tree(xyz, alive, wide)
+    o, d = hard_rays(tree, xyz, alive, seed=1)
+    rays = make_rays(o, d)
+    one, narrow = intersect(tree, rays, wide), intersect(tree, rays, wide.replace(frontier_capacity=2))
+    over = np.asarray(narrow.frontier_overflow) > 0
+    cap = 2
+    assert over.sum() > cap
+    cfg = wide.replace(first_pass_frontier=2, retry_share=cap / rays.num_rays)
+    two = intersect(tree, rays, cfg)
+    redone = np.flatnonzero(over)[:cap]  # the first overflowing rays are walked again
+    kept = np.flatnonzero(over)[cap:]
+    for f in SEG_FIELDS:
+        got, a, b = (np.asarray(getattr(x, f)) for x in (two, one, narrow))
+        np.testing.assert_array_equal(got[redone], a[redone], err_msg=f)
+        np.testing.assert_array_equal(got[~over], a[~over], err_msg=f)
+        np.testing.assert_array_equal(got[kept], b[kept], err_msg=f)
+    assert np.all(np.asarray(two.frontier_overflow)[kept] > 0)  # never silent
+    full, grown = intersect_checked(tree, rays, cfg)  # growth walks one pass at twice the width
+    assert grown.first_pass_frontier is None and grown.frontier_capacity == 128
+    compare(tree, rays, full, grown)
+
+
 def test_grad_wrt_origin_finite():
     cfg = CFG.replace(depth=10)
-    for name in ("sphere_700", "identical", "coplanar", "one_point"):
+    two_pass = cfg.replace(frontier_capacity=64, first_pass_frontier=2, retry_share=1.0)
+    for name, cfg in (("sphere_700", cfg), ("identical", cfg), ("coplanar", cfg), ("one_point", cfg),
+                      ("sphere_700", two_pass), ("coplanar", two_pass)):
         xyz, alive = padded(name)
         tree = build_tree(xyz, alive, cfg)
         o, d = hard_rays(tree, xyz, alive, n_boxes=3)
@@ -175,8 +221,8 @@ def test_grad_wrt_origin_finite():
         assert float(jnp.abs(g).sum()) > 0 or name == "one_point"
 
 
-def test_no_recompilation_for_same_capacities():
-    cfg = KDTreeConfig.tiny(depth=10)
+@pytest.mark.parametrize("cfg", [KDTreeConfig.tiny(depth=10), KDTreeConfig.tiny(depth=10, first_pass_frontier=4)])
+def test_no_recompilation_for_same_capacities(cfg):
     xyz = sphere(1000, seed=7)
     t1 = build_tree(xyz, np.arange(1000) < 900, cfg)
     t2 = build_tree(xyz * 1.5, np.arange(1000) >= 50, cfg)

@@ -98,6 +98,8 @@ def test_build_errors(xyz, alive, match):
         (dict(knn_k=200), r"KDTreeConfig.knn_k: expected an integer in \[1, 96\], found 200"),
         (dict(depth=3), r"KDTreeConfig.depth: expected None or an integer in .* = \[5, 21\], found 3"),
         (dict(frontier_capacity=1), r"KDTreeConfig.frontier_capacity"),
+        (dict(first_pass_frontier=64), r"KDTreeConfig.first_pass_frontier: expected None or an integer in .* = \[2, 64\), found 64"),
+        (dict(retry_share=0.0), r"KDTreeConfig.retry_share: expected a share in \(0, 1\]"),
         (dict(margin_factor=0.0), r"KDTreeConfig.margin_factor: expected > 0"),
     ],
 )

@@ -148,6 +148,29 @@ def test_configs_round_trip_with_types():
         ckpt.config_from_json({"__type__": "os:system", "command": "true"})
 
 
+def test_fields_added_later_keep_old_keys():
+    """A field flagged ADDED_LATER is left out of the key at its default (keys of runs made before it
+    existed stay valid) and counts once set; config.json always holds it."""
+    import dataclasses
+    import hashlib
+
+    from ne_jax.geometry.kdtree import KDTreeConfig
+    from ne_jax.train.loop import RunConfig
+
+    added = [f.name for f in dataclasses.fields(KDTreeConfig) if f.metadata.get(ckpt.ADDED_LATER)]
+    assert added == ["first_pass_frontier", "retry_share"]
+    run = RunConfig.default()
+    stripped = ckpt.config_to_json(run)
+    for name in added:
+        del stripped["render"]["tree"][name]
+    old_key = hashlib.sha256(json.dumps(stripped, sort_keys=True).encode()).hexdigest()[:12]
+    assert ckpt.config_key(run) == old_key
+    assert "first_pass_frontier" in ckpt.config_to_json(run)["render"]["tree"]
+    two_pass = run.replace(render=run.render.replace(tree=run.render.tree.replace(first_pass_frontier=16)))
+    assert ckpt.config_key(two_pass) != old_key
+    assert ckpt.config_from_json(json.loads(json.dumps(stripped))) == run  # an old config.json reads back the same
+
+
 # ---------------------------------------------------------------- refusals
 
 
