@@ -15,7 +15,8 @@ setting, on all pixels of ``--views`` evenly spaced test views of the run's scen
 * ``render_image`` of test view 0 (best of ``--repeats`` after a compiling call): the time per image
   against the reference, and the largest pixel difference;
 * ``--train-steps N`` training steps from the trained state on the same batches (the run's sampler
-  on its training split): the time per step against the reference, the segments lost, and the
+  on its training split, its packing budget as it ended): the time per step against the reference,
+  the segments lost, and the
   largest difference of any parameter after the N steps (0: the same training).
 
 Writes ``experiments/results/bench_traversal.{json,md}`` (``--out-dir``); prints the table.
@@ -38,15 +39,16 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
     """``(label, KDTreeConfig changes)``: the reference first, then narrower single passes (lossy)
     and two-pass walks of the same full width."""
+    def two(w, share):
+        return (f"two passes, {w} then {width}, retry share 1/{round(1 / share)}",
+                dict(first_pass_frontier=w, retry_share=share))
+
     if quick:
-        return [(f"one pass, frontier {width} (reference)", {}),
-                (f"two passes, {width // 4} then {width}", dict(first_pass_frontier=width // 4))]
+        return [(f"one pass, frontier {width} (reference)", {}), two(width // 4, 1.0)]
     out = [(f"one pass, frontier {width} (reference)", {})]
     out += [(f"one pass, frontier {w} (lossy)", dict(frontier_capacity=w)) for w in (width // 4, width // 2)]
-    for w in (width // 8, width // 4, width // 2):
-        out.append((f"two passes, {w} then {width}", dict(first_pass_frontier=w)))
-    out.append((f"two passes, {width // 4} then {width}, retry share 1/64",
-                dict(first_pass_frontier=width // 4, retry_share=1 / 64)))
+    out += [two(width // 8, 1 / 4), two(width // 4, 1 / 16), two(width // 4, 1 / 8), two(width // 4, 1 / 4),
+            two(width // 2, 1 / 16)]
     return out
 
 
@@ -73,7 +75,8 @@ def train_steps(model, scene_dir: Path, tree_cfg, steps: int) -> tuple[float, in
     from ne_jax.train.step import make_train_step
 
     run = model.run
-    step = make_train_step(run.train, run.render.replace(tree=tree_cfg))
+    budget = model.meta.get("extra", {}).get("segments_per_ray", run.render.segments_per_ray)  # as the run ended
+    step = make_train_step(run.train, run.render.replace(tree=tree_cfg, segments_per_ray=budget))
     pool = build_pool(run.sampler, load_split(scene_dir, "train"), run.background)
     key = jax.random.PRNGKey(0)
     state, lost = model.state, 0
@@ -107,7 +110,7 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
     idx = np.linspace(0, split.num_views - 1, min(views, split.num_views)).round().astype(int)
     rays = [camera_rays(split.camera(int(i)), near, far) for i in idx]
     rays = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *rays)
-    chunk = run.render.chunk
+    chunk = min(run.render.chunk, rays.num_rays)
     n = rays.num_rays - rays.num_rays % chunk  # whole chunks: one compiled shape
     chunks = [jax.tree_util.tree_map(lambda a, s=s: a[s:s + chunk], rays) for s in range(0, n, chunk)]
     bg = parse_background(run.background)

@@ -248,8 +248,9 @@ def intersect_checked(
 ) -> tuple[Segments, KDTreeConfig]:
     """Host-side: run :func:`intersect`, and while any ray overflows, re-allocate and retry.
 
-    The frontier capacity doubles on frontier overflow (and the walk becomes one pass); the segment
-    slots grow to the next power of two above the largest count found. Returns the complete segments
+    On frontier overflow a two-pass walk retries twice the share of rays, then the frontier capacity
+    doubles (:meth:`KDTreeConfig.widened`); the segment slots grow to the next power of two above
+    the largest count found. Returns the complete segments
     and the config that fit (reuse it for later batches: the same capacities mean no recompilation).
 
     Raises:
@@ -261,13 +262,11 @@ def intersect_checked(
         s_over = int(jnp.max(seg.segment_overflow))
         if f_over == 0 and s_over == 0:
             return seg, cfg
-        changes = {}
-        if f_over > 0:  # one pass at twice the width (the retries of a two-pass walk may have run out)
-            changes.update(frontier_capacity=2 * cfg.frontier_capacity, first_pass_frontier=None)
+        if f_over > 0:
+            cfg = cfg.widened()
         if s_over > 0:
             need = int(jnp.max(seg.num_emitted))
-            changes["max_segments"] = max(2 * cfg.max_segments, int(2 ** np.ceil(np.log2(need))))
-        cfg = cfg.replace(**changes)
+            cfg = cfg.replace(max_segments=max(2 * cfg.max_segments, int(2 ** np.ceil(np.log2(need)))))
     raise RuntimeError(
         f"intersect_checked: still overflowing after {max_tries} tries "
         f"(frontier_capacity={cfg.frontier_capacity}, max_segments={cfg.max_segments})"

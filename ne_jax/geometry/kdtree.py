@@ -179,6 +179,13 @@ class KDTreeConfig:
     def replace(self, **changes) -> "KDTreeConfig":
         return dataclasses.replace(self, **changes)
 
+    def widened(self) -> "KDTreeConfig":
+        """The traversal after a frontier overflow: a two-pass walk retries twice the share of rays
+        (up to all of them) before the frontier doubles."""
+        if self.first_pass_frontier is not None and self.retry_share < 1:
+            return self.replace(retry_share=min(1.0, 2 * self.retry_share))
+        return self.replace(frontier_capacity=2 * self.frontier_capacity)
+
     @classmethod
     def tiny(cls, **changes) -> "KDTreeConfig":
         """Small capacities for tests and toy scenes."""

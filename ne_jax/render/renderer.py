@@ -421,7 +421,7 @@ def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, backgrou
 def grown_config(cfg: RenderConfig, out: RenderOut) -> RenderConfig | None:
     """Host side: the config with larger capacities if ``out`` lost segments, else ``None``.
     The packing budget grows on ``dropped`` to what the batch needed; the traversal capacities double
-    on ``overflow``, walked in one pass (as in :func:`~ne_jax.geometry.intersect.intersect_checked`)."""
+    on ``overflow``, after a two-pass walk's retry share (:meth:`~ne_jax.geometry.kdtree.KDTreeConfig.widened`)."""
     dropped, overflow = (int(v) for v in jax.device_get(jnp.stack([jnp.max(out.dropped), jnp.max(out.overflow)])))
     if dropped == 0 and overflow == 0:
         return None
@@ -431,8 +431,7 @@ def grown_config(cfg: RenderConfig, out: RenderOut) -> RenderConfig | None:
         cfg = cfg.replace(segments_per_ray=grow * cfg.segments_per_ray)
     if overflow > 0:
         t = cfg.tree
-        cfg = cfg.replace(tree=t.replace(frontier_capacity=2 * t.frontier_capacity, max_segments=2 * t.max_segments,
-                                         first_pass_frontier=None))
+        cfg = cfg.replace(tree=t.widened().replace(max_segments=2 * t.max_segments))
     return cfg
 
 

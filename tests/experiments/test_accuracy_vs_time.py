@@ -200,7 +200,8 @@ def test_image_study_files_and_schema(image_run):
         assert rows[0]["knob"] == "own" and {"samples", "points", "chunk"} <= {r["knob"] for r in rows}
         for r in rows:
             assert {"psnr", "ssim", "ms_per_image", "compile_s", "d_psnr", "time_ratio", "on_front",
-                    "lost_segments", "alive_points"} <= set(r)
+                    "lost_segments", "alive_points", "overflow_rays"} <= set(r)
+            assert 0 <= r["overflow_rays"] <= 40_000
             assert math.isfinite(r["psnr"]) and 0.0 < r["ssim"] <= 1.0
             assert math.isfinite(r["ms_per_image"]) and r["ms_per_image"] > 0 and r["compile_s"] >= 0
         # the front: non-empty, made of rows no other row beats
@@ -243,6 +244,24 @@ def test_image_frontier_settings_change_only_the_frontier():
     for s in rows:
         assert s.cfg.tree == own.tree.replace(frontier_capacity=s.value)
         assert s.cfg.replace(tree=own.tree) == own
+
+
+def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_path):
+    """experiments/bench_traversal.py --quick on the smoke-test model: the two-pass walk gives the
+    reference's segments, pixels and (after 2 training steps) parameters exactly."""
+    spec = importlib.util.spec_from_file_location("bench_traversal", SCRIPT.parent / "bench_traversal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    _, _, run_dir = image_run
+    assert bench.main(["--run", str(run_dir), "--quick", "--out-dir", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "bench_traversal.json").read_text())
+    ref, two = res["rows"]
+    assert ref["walk_ratio"] == 1.0 and two["changes"]["first_pass_frontier"] < 16
+    assert two["segments_equal_reference"] and two["max_abs_rgb_diff"] == 0.0
+    assert two["max_abs_param_diff"] == 0.0 and two["train_segments_lost"] == ref["train_segments_lost"]
+    assert "two passes" in (tmp_path / "bench_traversal.md").read_text()
+    with pytest.raises(SystemExit, match="expected a trained run directory"):
+        bench.main(["--run", str(tmp_path / "missing")])
 
 
 def test_image_study_sanity(image_run):

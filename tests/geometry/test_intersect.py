@@ -196,9 +196,11 @@ def test_two_pass_beyond_the_retry_share_is_counted():
         np.testing.assert_array_equal(got[~over], a[~over], err_msg=f)
         np.testing.assert_array_equal(got[kept], b[kept], err_msg=f)
     assert np.all(np.asarray(two.frontier_overflow)[kept] > 0)  # never silent
-    full, grown = intersect_checked(tree, rays, cfg)  # growth walks one pass at twice the width
-    assert grown.first_pass_frontier is None and grown.frontier_capacity == 128
+    full, grown = intersect_checked(tree, rays, cfg)  # growth retries more rays before it widens
+    assert grown.first_pass_frontier == 2 and grown.frontier_capacity == 64 and grown.retry_share > cfg.retry_share
     compare(tree, rays, full, grown)
+    assert cfg.replace(retry_share=1.0).widened() == cfg.replace(retry_share=1.0, frontier_capacity=128)
+    assert wide.widened() == wide.replace(frontier_capacity=128)
 
 
 def test_grad_wrt_origin_finite():
