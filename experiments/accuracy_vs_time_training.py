@@ -261,7 +261,7 @@ def summary_markdown(res: dict) -> str:
     L += ["", f"Training noise: the preset with another seed differs by {noise:.2f} dB." if noise is not None
           else "Training noise: not measured (no second seed).", "",
           _rule_text(ch, res["preset"], f"the best PSNR ({ch['best_affordable_db']:.2f} dB)", "On this scene the"),
-          "", f"Plot: `experiments/results/{_stem(res['preset'], Path(res['scene']).name)}.png`.", ""]
+          "", f"Plot: `{_stem(res['preset'], Path(res['scene']).name)}.png` (next to this file).", ""]
     return "\n".join(L)
 
 
@@ -409,7 +409,7 @@ def combined_markdown(res: dict) -> str:
           "scenes." if noise is not None else "Training noise: not measured (no second seed).", "",
           _rule_text(ch, res["preset"], f"the best mean change ({ch['best_affordable_db']:+.2f} dB)", "The",
                      name="Preset rule on the means"),
-          "", f"Plot: `experiments/results/{_stem(res['preset'])}.png`.", ""]
+          "", f"Plot: `{_stem(res['preset'])}.png` (next to this file).", ""]
     return "\n".join(L)
 
 
