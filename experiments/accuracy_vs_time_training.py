@@ -52,6 +52,10 @@ from accuracy_vs_time_image import SHARED_NOTE, _scaled_samples, best_time, pare
 
 from ne_jax.train.checkpoint import config_key  # noqa: E402
 
+TWO_PASS_SHARE = 0.25
+"""Retry share of the two-pass candidate: the smallest that kept 50 training steps of the `default`
+glossy model bit for bit (``experiments/results/bench_traversal.md``)."""
+
 BUDGET = 1.25
 """A preset may cost at most this many times its current training time and time per image."""
 
@@ -68,8 +72,9 @@ CANDIDATE_SETS = ("full", "short")
 most where a model takes an hour (``default``): K both ways, half the steps, the paper's per-sample
 settings at the same steps and at a quarter of them (about the same time), half the candidate set,
 and a quarter of the traversal frontier (part 2 on the ``default`` model found the frontier, not the
-candidate set, sets the time per image; ``full`` ends with it too). New candidates go at the end, so
-the indices of ``--train-only`` keep naming the same runs."""
+candidate set, sets the time per image; ``full`` ends with it too), then the two-pass walk of the
+same full width (:attr:`~ne_jax.geometry.kdtree.KDTreeConfig.first_pass_frontier` at a quarter).
+New candidates go at the end, so the indices of ``--train-only`` keep naming the same runs."""
 
 
 def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> list[Candidate]:
@@ -100,6 +105,10 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     narrow = t.replace(frontier_capacity=max(2, t.frontier_capacity // 4))
     narrow_frontier = Candidate(f"frontier={narrow.frontier_capacity}", "frontier",
                                 run.replace(render=run.render.replace(tree=narrow)))
+    two = t.replace(first_pass_frontier=narrow.frontier_capacity, retry_share=TWO_PASS_SHARE)
+    two_pass = Candidate(f"two-pass frontier ({two.first_pass_frontier} then {t.frontier_capacity}, "
+                         f"retry share 1/{round(1 / TWO_PASS_SHARE)})", "two-pass",
+                         run.replace(render=run.render.replace(tree=two)))
     if quick:
         return [Candidate("own", "own", run), Candidate(f"K={max(1, t.knn_k // 2)}", "k", with_k(max(1, t.knn_k // 2)))]
     out = [Candidate("own", "own", run), Candidate("own, seed 1", "seed", run.replace(seed=run.seed + 1))]
@@ -120,7 +129,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         if half.num_candidates < t.num_candidates:
             out.append(Candidate(f"{half.num_candidates} candidates (K={half.knn_k})", "candidates",
                                  run.replace(render=run.render.replace(tree=half))))
-        out.append(narrow_frontier)
+        out += [narrow_frontier, two_pass]
         return out
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))
@@ -136,7 +145,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     out.append(Candidate(f"initial points x2 ({2 * carve.num_points})", "points",
                          run.replace(init=dataclasses.replace(run.init, carve=dataclasses.replace(
                              carve, num_points=2 * carve.num_points)))))
-    out.append(narrow_frontier)
+    out += [narrow_frontier, two_pass]
     return out
 
 

@@ -328,8 +328,10 @@ def test_training_candidates_change_one_knob():
     assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.train.total_steps == half.total_steps
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
     narrow = own.render.tree.frontier_capacity // 4  # appended last, so earlier indices keep their runs
-    assert cands[-1].label == f"frontier={narrow}" and cands[-1].run.replace(render=own.render) == own
-    assert cands[-1].run.render.tree == own.render.tree.replace(frontier_capacity=narrow)
+    assert cands[-2].label == f"frontier={narrow}" and cands[-2].run.replace(render=own.render) == own
+    assert cands[-2].run.render.tree == own.render.tree.replace(frontier_capacity=narrow)
+    assert cands[-1].knob == "two-pass" and cands[-1].run.replace(render=own.render) == own
+    assert cands[-1].run.render.tree.first_pass_frontier == narrow
 
 
 def test_short_candidates_for_hour_long_presets():
@@ -340,13 +342,17 @@ def test_short_candidates_for_hour_long_presets():
     tr = _training()
     own = RunConfig.default()
     cands = tr.candidates_for(own, candidate_set="short")
-    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates", "frontier"]
+    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates", "frontier",
+                                       "two-pass"]
     paper, paper_short = cands[5].run, cands[6].run
     half = cands[7].run.render.tree
     assert (half.num_candidates, half.knn_k) == (16, 16) and cands[7].label == "16 candidates (K=16)"
     assert cands[7].run.replace(render=own.render) == own  # only the candidate set changes
     assert cands[8].label == "frontier=16" and cands[8].run.render.tree == own.render.tree.replace(frontier_capacity=16)
     assert cands[8].run.replace(render=own.render) == own
+    two = cands[9].run.render.tree  # the same full width, walked in two passes
+    assert two == own.render.tree.replace(first_pass_frontier=16, retry_share=tr.TWO_PASS_SHARE)
+    assert cands[9].run.replace(render=own.render) == own
     assert paper.render.tree == KDTreeConfig.default() and paper.render.quadrature == QuadratureConfig()
     assert paper.replace(render=own.render) == own  # only the per-sample settings change
     assert paper_short.total_steps == own.total_steps // 4
