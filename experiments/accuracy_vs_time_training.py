@@ -102,13 +102,13 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         return cfg.replace(render=cfg.render.replace(
             quadrature=dataclasses.replace(rq, samples_per_level=_scaled_samples(tuple(rq.samples_per_level), f))))
 
-    narrow = t.replace(frontier_capacity=max(2, t.frontier_capacity // 4))
+    narrow = t.replace(frontier_capacity=max(2, t.frontier_capacity // 4), first_pass_frontier=None)
     narrow_frontier = Candidate(f"frontier={narrow.frontier_capacity}", "frontier",
                                 run.replace(render=run.render.replace(tree=narrow)))
     two = t.replace(first_pass_frontier=narrow.frontier_capacity, retry_share=TWO_PASS_SHARE)
-    two_pass = Candidate(f"two-pass frontier ({two.first_pass_frontier} then {t.frontier_capacity}, "
-                         f"retry share 1/{round(1 / TWO_PASS_SHARE)})", "two-pass",
-                         run.replace(render=run.render.replace(tree=two)))
+    two_pass = [] if two == t else [  # a preset that walks this way already has no such candidate
+        Candidate(f"two-pass frontier ({two.first_pass_frontier} then {t.frontier_capacity}, "
+                  f"retry share 1/{round(1 / TWO_PASS_SHARE)})", "two-pass", run.replace(render=run.render.replace(tree=two)))]
     if quick:
         return [Candidate("own", "own", run), Candidate(f"K={max(1, t.knn_k // 2)}", "k", with_k(max(1, t.knn_k // 2)))]
     out = [Candidate("own", "own", run), Candidate("own, seed 1", "seed", run.replace(seed=run.seed + 1))]
@@ -129,8 +129,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         if half.num_candidates < t.num_candidates:
             out.append(Candidate(f"{half.num_candidates} candidates (K={half.knn_k})", "candidates",
                                  run.replace(render=run.render.replace(tree=half))))
-        out += [narrow_frontier, two_pass]
-        return out
+        return out + [narrow_frontier] + two_pass
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))
     joint = with_s(0.5, with_k(2 * t.knn_k))
@@ -145,8 +144,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     out.append(Candidate(f"initial points x2 ({2 * carve.num_points})", "points",
                          run.replace(init=dataclasses.replace(run.init, carve=dataclasses.replace(
                              carve, num_points=2 * carve.num_points)))))
-    out += [narrow_frontier, two_pass]
-    return out
+    return out + [narrow_frontier] + two_pass
 
 
 def is_finished(run, runs: Path) -> bool:

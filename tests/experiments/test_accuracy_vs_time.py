@@ -353,6 +353,9 @@ def test_short_candidates_for_hour_long_presets():
     two = cands[9].run.render.tree  # the same full width, walked in two passes
     assert two == own.render.tree.replace(first_pass_frontier=16, retry_share=tr.TWO_PASS_SHARE)
     assert cands[9].run.replace(render=own.render) == own
+    walks_so = own.replace(render=cands[9].run.render)  # a preset that already walks in two passes
+    again = tr.candidates_for(walks_so, candidate_set="short")
+    assert [c.knob for c in again][-1] == "frontier" and again[-1].run.render.tree.first_pass_frontier is None
     assert paper.render.tree == KDTreeConfig.default() and paper.render.quadrature == QuadratureConfig()
     assert paper.replace(render=own.render) == own  # only the per-sample settings change
     assert paper_short.total_steps == own.total_steps // 4
