@@ -3,6 +3,7 @@ files and their schema, and monotone sanity of the numbers (no claim about timin
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import itertools
 import json
@@ -262,6 +263,31 @@ def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_pa
     assert "two passes" in (tmp_path / "bench_traversal.md").read_text()
     with pytest.raises(SystemExit, match="expected a trained run directory"):
         bench.main(["--run", str(tmp_path / "missing")])
+
+
+def test_compare_runs_same_and_different(image_run, tmp_path, capsys):
+    """experiments/compare_runs.py: a run against a copy of itself is equal bit for bit (exit 0); a
+    copy whose checkpoint holds other parameters is not (exit 1)."""
+    import shutil
+
+    spec = importlib.util.spec_from_file_location("compare_runs", SCRIPT.parent / "compare_runs.py")
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    _, _, run_dir = image_run
+    assert compare.main([str(run_dir), str(run_dir)]) == 0
+    assert "every array equal bit for bit: True" in capsys.readouterr().out
+    import jax
+
+    from ne_jax.train.loop import load_trained, save_trained
+
+    model = load_trained(run_dir)
+    nudged = model.state.replace(params=jax.tree_util.tree_map(lambda a: a + 1e-3, model.state.params))
+    other = tmp_path / "other"
+    save_trained(dataclasses.replace(model, state=nudged), other)
+    shutil.copy(run_dir / "metrics.json", other / "metrics.json")
+    assert compare.main([str(run_dir), str(other)]) == 1
+    out = capsys.readouterr().out
+    assert "every array equal bit for bit: False" in out and "B / A = 1.000" in out
 
 
 def test_image_study_sanity(image_run):
