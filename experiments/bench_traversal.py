@@ -33,7 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+if str(HERE) not in sys.path:
+    sys.path.insert(0, str(HERE))
+
+from accuracy_vs_time_image import best_time  # noqa: E402
 
 
 def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
@@ -50,19 +55,6 @@ def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
     out += [two(width // 8, 1 / 4), two(width // 4, 1 / 16), two(width // 4, 1 / 8), two(width // 4, 1 / 4),
             two(width // 2, 1 / 16)]
     return out
-
-
-def best_of(fn, repeats: int) -> tuple[float, float]:
-    """``(first call s, best of the repeats after it s)``."""
-    t0 = time.perf_counter()
-    fn()
-    first = time.perf_counter() - t0
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return first, best
 
 
 def train_steps(model, scene_dir: Path, tree_cfg, steps: int) -> tuple[float, int, dict]:
@@ -123,11 +115,11 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
             return [intersect(tree, c, cfg) for c in chunks]
 
         segs = jax.block_until_ready(walk())
-        _, t_walk = best_of(lambda: jax.block_until_ready(walk()), repeats)
+        _, t_walk = best_time(lambda: jax.block_until_ready(walk()), repeats)
         fields = [np.concatenate([np.asarray(getattr(s, f)) for s in segs]) for f in ("t_lo", "t_hi", "node", "valid")]
         lost = int(sum(int(jnp.sum(s.overflow > 0)) for s in segs))
         render_cfg = run.render.replace(tree=cfg)
-        first, t_img = best_of(lambda: jax.block_until_ready(
+        first, t_img = best_time(lambda: jax.block_until_ready(
             render_image(render_cfg, model.state.params, model.scene, camera, bg, near, far, progress=False).rgb), repeats)
         rgb = np.asarray(render_image(render_cfg, model.state.params, model.scene, camera, bg, near, far, progress=False).rgb)
         if steps and "frontier_capacity" not in changes:  # training: the reference and the two-pass walks
