@@ -368,20 +368,22 @@ def test_short_candidates_for_hour_long_presets():
     tr = _training()
     own = RunConfig.default()
     cands = tr.candidates_for(own, candidate_set="short")
-    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates", "frontier",
-                                       "two-pass"]
+    # the preset walks in two passes already (16 then 64): no two-pass candidate, and the narrow frontier
+    # is walked in one pass
+    assert own.render.tree.first_pass_frontier == 16 and own.render.tree.retry_share == tr.TWO_PASS_SHARE
+    assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates", "frontier"]
     paper, paper_short = cands[5].run, cands[6].run
     half = cands[7].run.render.tree
     assert (half.num_candidates, half.knn_k) == (16, 16) and cands[7].label == "16 candidates (K=16)"
     assert cands[7].run.replace(render=own.render) == own  # only the candidate set changes
-    assert cands[8].label == "frontier=16" and cands[8].run.render.tree == own.render.tree.replace(frontier_capacity=16)
+    one_pass = own.render.tree.replace(first_pass_frontier=None)
+    assert cands[8].label == "frontier=16" and cands[8].run.render.tree == one_pass.replace(frontier_capacity=16)
     assert cands[8].run.replace(render=own.render) == own
-    two = cands[9].run.render.tree  # the same full width, walked in two passes
-    assert two == own.render.tree.replace(first_pass_frontier=16, retry_share=tr.TWO_PASS_SHARE)
-    assert cands[9].run.replace(render=own.render) == own
-    walks_so = own.replace(render=cands[9].run.render)  # a preset that already walks in two passes
-    again = tr.candidates_for(walks_so, candidate_set="short")
-    assert [c.knob for c in again][-1] == "frontier" and again[-1].run.render.tree.first_pass_frontier is None
+    # a preset that walks in one pass gets the two-pass walk of its full width as its last candidate
+    single = own.replace(render=own.render.replace(tree=one_pass))
+    again = tr.candidates_for(single, candidate_set="short")
+    assert [c.knob for c in again][-2:] == ["frontier", "two-pass"]
+    assert again[-1].run.render.tree == own.render.tree and again[-1].run.replace(render=single.render) == single
     assert paper.render.tree == KDTreeConfig.default() and paper.render.quadrature == QuadratureConfig()
     assert paper.replace(render=own.render) == own  # only the per-sample settings change
     assert paper_short.total_steps == own.total_steps // 4

@@ -159,14 +159,15 @@ def test_fields_added_later_keep_old_keys():
 
     added = [f.name for f in dataclasses.fields(KDTreeConfig) if f.metadata.get(ckpt.ADDED_LATER)]
     assert added == ["first_pass_frontier", "retry_share"]
-    run = RunConfig.default()
+    run = RunConfig.tiny()  # walks in one pass: both fields at their defaults
+    assert run.render.tree.first_pass_frontier is None
     stripped = ckpt.config_to_json(run)
     for name in added:
         del stripped["render"]["tree"][name]
     old_key = hashlib.sha256(json.dumps(stripped, sort_keys=True).encode()).hexdigest()[:12]
     assert ckpt.config_key(run) == old_key
     assert "first_pass_frontier" in ckpt.config_to_json(run)["render"]["tree"]
-    two_pass = run.replace(render=run.render.replace(tree=run.render.tree.replace(first_pass_frontier=16)))
+    two_pass = run.replace(render=run.render.replace(tree=run.render.tree.replace(first_pass_frontier=8)))
     assert ckpt.config_key(two_pass) != old_key
     assert ckpt.config_from_json(json.loads(json.dumps(stripped))) == run  # an old config.json reads back the same
 
