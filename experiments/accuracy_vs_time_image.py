@@ -36,6 +36,7 @@ import functools
 import math
 import os
 import platform
+import re
 import sys
 import time
 from pathlib import Path
@@ -128,6 +129,15 @@ def best_time(fn, repeats: int) -> tuple[float, float]:
         jax.block_until_ready(fn())
         best = min(best, time.perf_counter() - t0)
     return first, best
+
+
+def device_tag() -> str:
+    """``cpu``, or the accelerator JAX runs on as a file-name part (``nvidia_h100_80gb_hbm3``): benchmarks
+    name their results after it, so a GPU's timings never overwrite the CPU's."""
+    import jax
+
+    dev = jax.devices()[0]
+    return "cpu" if dev.platform == "cpu" else re.sub(r"[^a-z0-9]+", "_", dev.device_kind.lower()).strip("_")
 
 
 def _scaled_samples(spl: tuple[int, ...], f: float) -> tuple[int, ...]:

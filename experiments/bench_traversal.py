@@ -19,7 +19,11 @@ setting, on all pixels of ``--views`` evenly spaced test views of the run's scen
   the segments lost, and the
   largest difference of any parameter after the N steps (0: the same training).
 
-Writes ``experiments/results/bench_traversal.{json,md}`` (``--out-dir``); prints the table.
+The reference is measured twice: the second row is the run-to-run noise of the times and, on a GPU
+(whose scatter-adds are not reproducible bit for bit), of the pixels and parameters.
+
+Writes ``experiments/results/bench_traversal.{json,md}`` (``--out-dir``; on an accelerator
+``bench_traversal_<device>.{json,md}``); prints the table.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ RESULTS = HERE / "results"
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from accuracy_vs_time_image import best_time  # noqa: E402
+from accuracy_vs_time_image import best_time, device_tag  # noqa: E402
 
 
 def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
@@ -48,9 +52,10 @@ def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
         return (f"two passes, {w} then {width}, retry share 1/{round(1 / share)}",
                 dict(first_pass_frontier=w, retry_share=share))
 
+    ref = (f"one pass, frontier {width} (reference)", {})
     if quick:
-        return [(f"one pass, frontier {width} (reference)", {}), two(width // 4, 1.0)]
-    out = [(f"one pass, frontier {width} (reference)", {})]
+        return [ref, two(width // 4, 1.0)]
+    out = [ref, (f"one pass, frontier {width} (the reference again: run-to-run noise)", {})]
     out += [(f"one pass, frontier {w} (lossy)", dict(frontier_capacity=w)) for w in (width // 4, width // 2)]
     out += [two(width // 8, 1 / 4), two(width // 4, 1 / 16), two(width // 4, 1 / 8), two(width // 4, 1 / 4),
             two(width // 2, 1 / 16)]
@@ -71,14 +76,16 @@ def train_steps(model, scene_dir: Path, tree_cfg, steps: int) -> tuple[float, in
     step = make_train_step(run.train, run.render.replace(tree=tree_cfg, segments_per_ray=budget))
     pool = build_pool(run.sampler, load_split(scene_dir, "train"), run.background)
     key = jax.random.PRNGKey(0)
-    state, lost = model.state, 0
-    for i in range(steps + 1):
+    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i)) for i in range(steps + 1)]
+    state, lost = model.state, []  # counts read after the clock stops (a read waits for the device)
+    for i, batch in enumerate(batches):
         if i == 1:
+            jax.block_until_ready(state.params)
             t0 = time.perf_counter()
-        state, m = step(state, model.scene, sample_batch(run.sampler, pool, jax.random.fold_in(key, i)))
-        lost += int(m["overflow"]) + int(m["dropped"])
+        state, m = step(state, model.scene, batch)
+        lost.append(m["overflow"] + m["dropped"])
     jax.block_until_ready(state.params)
-    return (time.perf_counter() - t0) / steps, lost, state.params
+    return (time.perf_counter() - t0) / steps, int(sum(int(x) for x in lost)), state.params
 
 
 def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, quick: bool, steps: int = 0,
@@ -108,8 +115,9 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
     bg = parse_background(run.background)
     camera = split.camera(int(idx[0]))
     rows, ref_seg, ref_rgb, ref_params = [], None, None, None
-    for label, changes in settings(run.render.tree.frontier_capacity, quick):
-        cfg = run.render.tree.replace(**changes)
+    one_pass = run.render.tree.replace(first_pass_frontier=None)  # the reference, whatever the run walked
+    for label, changes in settings(one_pass.frontier_capacity, quick):
+        cfg = one_pass.replace(**changes)
 
         def walk(cfg=cfg):
             return [intersect(tree, c, cfg) for c in chunks]
@@ -147,7 +155,8 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
     return {"run": str(run_dir), "scene": str(scene_dir), "preset": run.name, "views": [int(i) for i in idx],
             "chunk": chunk, "repeats": repeats, "train_steps": steps, "tree_depth": int(tree.depth),
             "alive_points": int(np.asarray(model.scene.points.alive).sum()),
-            "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}, "jax": jax.__version__, "rows": rows}
+            "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}, "jax": jax.__version__,
+            "device": {"platform": jax.devices()[0].platform, "kind": jax.devices()[0].device_kind}, "rows": rows}
 
 
 def markdown(res: dict) -> str:
@@ -187,8 +196,9 @@ def main(argv=None) -> int:
 
     args.out_dir.mkdir(parents=True, exist_ok=True)
     md = markdown(res)
-    atomic_write_json(args.out_dir / "bench_traversal.json", res)
-    atomic_write_text(args.out_dir / "bench_traversal.md", md)
+    stem = "bench_traversal" if device_tag() == "cpu" else f"bench_traversal_{device_tag()}"
+    atomic_write_json(args.out_dir / f"{stem}.json", res)
+    atomic_write_text(args.out_dir / f"{stem}.md", md)
     print(md)
     return 0
 

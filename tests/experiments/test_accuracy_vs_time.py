@@ -265,6 +265,30 @@ def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_pa
         bench.main(["--run", str(tmp_path / "missing")])
 
 
+def test_bench_presets_quick(image_run, tmp_path):
+    """experiments/bench_presets.py --quick on the smoke-test model: one row per preset measured, the
+    ratios against ``default``, the projection from the measured step, and clear refusals."""
+    spec = importlib.util.spec_from_file_location("bench_presets", SCRIPT.parent / "bench_presets.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    _, _, run_dir = image_run
+    assert bench.main(["--run", str(run_dir), "--quick", "--out-dir", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "bench_presets_cpu.json").read_text())
+    rows = {r["label"]: r for r in res["rows"]}
+    assert list(rows) == ["tiny", "default"]
+    assert rows["default"]["step_ratio"] == 1.0 and rows["default"]["frontier"] == [16, 64]
+    assert (rows["tiny"]["batch_rays"], rows["default"]["batch_rays"]) == (1024, 2048)
+    for r in rows.values():
+        assert r["ms_per_step"] > 0 and r["ms_per_image"] > 0 and math.isfinite(r["psnr_view0"])
+        assert r["projected_train_min"] == pytest.approx(r["total_steps"] * r["ms_per_step"] / 6e4, abs=0.06)
+        assert r["train_segments_lost"] >= 0
+    assert "| tiny |" in (tmp_path / "bench_presets_cpu.md").read_text()
+    with pytest.raises(SystemExit, match="expected a trained run directory"):
+        bench.main(["--run", str(tmp_path / "missing")])
+    with pytest.raises(SystemExit, match="--steps: expected at least 1, found 0"):
+        bench.main(["--run", str(run_dir), "--steps", "0"])
+
+
 def test_compare_runs_same_and_different(image_run, tmp_path, capsys):
     """experiments/compare_runs.py: a run against a copy of itself is equal bit for bit (exit 0); a
     copy whose checkpoint holds other parameters is not (exit 1)."""
