@@ -13,9 +13,10 @@ settings, the training study's most accurate candidate):
 * the tree built over the cloud with the preset's tree config (its depth);
 * ``--steps`` training steps from the run's parameters with the preset's train config and sampler
   (batch size) on the run's training split, the packing budget fitted to the first batch as
-  training does: time per step and per million rays after the compiling first, the compile time,
-  the segments lost, and the projection ``total_steps x time per step`` (point-cloud rounds and
-  evaluation excluded);
+  training does: time per step and per ray after the compiling first, the compile time,
+  the segments lost (to the traversal's capacities and to the packing budget), the first batch's
+  segments per ray and its rays that fill every segment slot or overflow, and the projection
+  ``total_steps x time per step`` (point-cloud rounds and evaluation excluded);
 * test view 0 rendered with the preset's render config (best of ``--repeats`` after a compiling
   call): time per image and its PSNR with the run's parameters (the same model for every row, so it
   shows what the render settings do to that model, not what training with them would reach).
@@ -64,6 +65,7 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     """``steps`` training steps of ``run``'s config from ``model``'s parameters and cloud."""
     import jax
 
+    from ne_jax.geometry.intersect import intersect
     from ne_jax.train.loop import fit_segment_budget
     from ne_jax.train.sampler import sample_batch
     from ne_jax.train.state import init_train_state
@@ -79,19 +81,24 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     t0 = time.perf_counter()
     for i, batch in enumerate(batches):
         state, m = step(state, scene, batch)
-        lost.append(m["overflow"] + m["dropped"])
+        lost.append((m["overflow"], m["dropped"]))
         if i == 0:
             jax.block_until_ready(state.params)
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
     jax.block_until_ready(state.params)
     per_step = (time.perf_counter() - t0) / steps
-    lost = int(sum(int(x) for x in lost))
+    overflow, dropped = (int(sum(int(x[j]) for x in lost)) for j in (0, 1))
+    segs = intersect(scene.tree, batches[0].rays, run.render.tree)
+    found = np.asarray(segs.valid).sum(1)
     rays = run.sampler.batch_size
     return {"batch_rays": rays, "segments_per_ray": render.segments_per_ray, "ms_per_step": round(1e3 * per_step, 2),
             "us_per_ray": round(1e6 * per_step / rays, 3), "step_compile_s": round(compile_s - per_step, 2),
-            "train_segments_lost": lost, "total_steps": run.total_steps,
-            "projected_train_min": round(run.total_steps * per_step / 60, 1)}
+            "train_segments_lost": overflow + dropped, "lost_to_capacity": overflow, "lost_to_budget": dropped,
+            "first_batch": {"mean_segments": round(float(found.mean()), 2),
+                            "rays_at_max_segments": int((found == run.render.tree.max_segments).sum()),
+                            "rays_overflowing": int((np.asarray(segs.overflow) > 0).sum())},
+            "total_steps": run.total_steps, "projected_train_min": round(run.total_steps * per_step / 60, 1)}
 
 
 def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, quick: bool, log=print) -> dict:
@@ -155,13 +162,16 @@ def markdown(res: dict) -> str:
          f"after a compiling one, test view 0 rendered (best of {res['repeats']}). Ratios against `{REFERENCE}`; "
          "the projection is total steps x time per step (no point rounds, no evaluation).", "",
          "| setting | tree depth | frontier | K | rays / batch | ms / step | us / ray | step / ref | "
-         "segments lost | steps | projected training (min) | ms / image | image / ref | PSNR view 0 (dB) |",
-         "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+         "segments lost (capacity / budget) | first batch: segments / ray, rays filling the slots | steps | "
+         "projected training (min) | ms / image | image / ref | PSNR view 0 (dB) |",
+         "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
         first, width = r["frontier"]
         frontier = f"{width}" if first is None else f"{first} then {width}"
         L.append(f"| {r['label']} | {r['tree_depth']} | {frontier} | {r['knn_k']} | {r['batch_rays']} | "
-                 f"{r['ms_per_step']:.1f} | {r['us_per_ray']:.2f} | {r['step_ratio']:.2f} | {r['train_segments_lost']} | "
+                 f"{r['ms_per_step']:.1f} | {r['us_per_ray']:.2f} | {r['step_ratio']:.2f} | "
+                 f"{r['lost_to_capacity']} / {r['lost_to_budget']} | {r['first_batch']['mean_segments']:.1f}, "
+                 f"{r['first_batch']['rays_at_max_segments']} | "
                  f"{r['total_steps']} | {r['projected_train_min']:.1f} | {r['ms_per_image']:.0f} | {r['image_ratio']:.2f} | "
                  f"{r['psnr_view0']:.2f} |")
     return "\n".join(L) + "\n"

@@ -281,7 +281,8 @@ def test_bench_presets_quick(image_run, tmp_path):
     for r in rows.values():
         assert r["ms_per_step"] > 0 and r["ms_per_image"] > 0 and math.isfinite(r["psnr_view0"])
         assert r["projected_train_min"] == pytest.approx(r["total_steps"] * r["ms_per_step"] / 6e4, abs=0.06)
-        assert r["train_segments_lost"] >= 0
+        assert r["train_segments_lost"] == r["lost_to_capacity"] + r["lost_to_budget"] >= 0
+        assert 0 <= r["first_batch"]["rays_at_max_segments"] <= r["batch_rays"]
     assert "| tiny |" in (tmp_path / "bench_presets_cpu.md").read_text()
     with pytest.raises(SystemExit, match="expected a trained run directory"):
         bench.main(["--run", str(tmp_path / "missing")])
