@@ -1,14 +1,16 @@
 """What each training preset costs per step and per image on this machine, on one trained cloud.
 
-    python experiments/bench_presets.py --run RUN_DIR [--scene DIR] [--steps 20] [--repeats 3] [--quick]
+    python experiments/bench_presets.py --run RUN_DIR [--scene DIR] [--steps 20] [--repeats 3]
+                                        [--settings LABEL ...] [--quick]
 
 The presets differ in what a step renders (K, candidates, levels, samples per segment, the tree's
 depth and width) and in how many rays a batch holds, and a full run of the ``paper`` preset (80,000
 steps of 4,096 rays) is far beyond a CPU. This measures every preset on the same cloud, a trained
 run's final points and colour model, so the costs compare and a preset's training time can be
-projected on a machine (a GPU) where it was never trained. Per preset (and the ``default`` preset
-walked in one pass, the reference for the two-pass walk, and ``default`` with the paper's per-sample
-settings, the training study's most accurate candidate):
+projected on a machine (a GPU) where it was never trained. Per preset, and for three variants:
+``default`` walked in one pass (the reference for the two-pass walk), ``default`` with the paper's
+per-sample settings (the training study's most accurate candidate) and ``paper`` with 32 segment
+slots a ray instead of 64 (its capacity before this benchmark showed what it loses):
 
 * the tree built over the cloud with the preset's tree config (its depth);
 * ``--steps`` training steps from the run's parameters with the preset's train config and sampler
@@ -47,7 +49,8 @@ REFERENCE = "default"
 
 
 def settings(quick: bool) -> list[tuple[str, object]]:
-    """``(label, RunConfig)``: every preset, and ``default`` walked in one 64-wide pass."""
+    """``(label, RunConfig)``: every preset; ``default`` walked in one 64-wide pass and with the paper's
+    sampling; ``paper`` with 32 segment slots a ray (its capacity until it was measured) instead of 64."""
     from ne_jax.render.renderer import RenderConfig
     from ne_jax.train.loop import PRESETS, RunConfig
 
@@ -58,6 +61,8 @@ def settings(quick: bool) -> list[tuple[str, object]]:
     out[2:2] = [("default, one pass", d.replace(render=d.render.replace(tree=one_pass))),
                 ("default, paper sampling", d.replace(render=d.render.replace(tree=paper_sampling.tree,
                                                                               quadrature=paper_sampling.quadrature)))]
+    p = RunConfig.paper()
+    out.append(("paper, 32 segment slots", p.replace(render=p.render.replace(tree=p.render.tree.replace(max_segments=32)))))
     return [s for s in out if s[0] in ("tiny", REFERENCE)] if quick else out
 
 
@@ -101,7 +106,9 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
             "total_steps": run.total_steps, "projected_train_min": round(run.total_steps * per_step / 60, 1)}
 
 
-def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, quick: bool, log=print) -> dict:
+def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, quick: bool, log=print,
+              only: list[str] | None = None) -> dict:
+    """Every setting of :func:`settings` (``only``: those labels, and always the reference)."""
     import jax
 
     from ne_jax.data.nerf_synthetic import load_split, parse_background
@@ -111,6 +118,12 @@ def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, q
     from ne_jax.train.loop import load_trained
     from ne_jax.train.sampler import build_pool
 
+    chosen = settings(quick)
+    if only:
+        unknown = sorted(set(only) - {label for label, _ in chosen})
+        if unknown:
+            raise ValueError(f"--settings: expected labels among {[label for label, _ in chosen]}, found {unknown}")
+        chosen = [(label, run) for label, run in chosen if label in only or label == REFERENCE]
     model = load_trained(run_dir)
     scene_dir = Path(scene_dir or model.scene_dir or "")
     if not (scene_dir / "transforms_test.json").is_file():
@@ -120,7 +133,7 @@ def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, q
     camera = view0.camera(0)
     points = model.state.point_state(model.scene.points)
     rows = []
-    for label, run in settings(quick):
+    for label, run in chosen:
         t0 = time.perf_counter()
         scene = PointScene.build(points, run.render)
         build_s = time.perf_counter() - t0
@@ -183,6 +196,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", type=Path, help="the scene folder, if not the one the run recorded")
     ap.add_argument("--steps", type=int, default=20, help="timed training steps per preset")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--settings", nargs="+", metavar="LABEL", help="measure only these rows (and always `default`)")
     ap.add_argument("--quick", action="store_true", help="tiny and default only, 2 steps, 1 repeat (smoke test)")
     ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
@@ -191,7 +205,7 @@ def main(argv=None) -> int:
     if args.steps < 1:
         raise SystemExit(f"--steps: expected at least 1, found {args.steps}")
     res = run_bench(args.run, args.scene, 2 if args.quick else args.steps, 1 if args.quick else args.repeats, args.quick,
-                    log=lambda s: print(s, file=sys.stderr, flush=True))
+                    log=lambda s: print(s, file=sys.stderr, flush=True), only=args.settings)
     res["command"] = "python experiments/bench_presets.py " + " ".join(argv if argv is not None else sys.argv[1:])
     from ne_jax.atomic import atomic_write_json, atomic_write_text
 

@@ -109,7 +109,7 @@ def test_config_errors(kwargs, match):
 
 
 def test_config_is_hashable_and_has_presets():
-    assert hash(KDTreeConfig.paper()) == hash(KDTreeConfig(depth=21))
+    assert hash(KDTreeConfig.paper()) == hash(KDTreeConfig(depth=21, max_segments=64))
     assert KDTreeConfig().num_candidates == 96 and KDTreeConfig().knn_k == 32
     assert KDTreeConfig.tiny().num_candidates == 16
 
