@@ -140,6 +140,16 @@ def device_tag() -> str:
     return "cpu" if dev.platform == "cpu" else re.sub(r"[^a-z0-9]+", "_", dev.device_kind.lower()).strip("_")
 
 
+def write_bench(out_dir: Path, stem: str, res: dict, md: str) -> None:
+    """``<out_dir>/<stem>.json`` and ``.md`` (each written whole or not at all), then the table printed."""
+    from ne_jax.atomic import atomic_write_json, atomic_write_text
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out_dir / f"{stem}.json", res)
+    atomic_write_text(out_dir / f"{stem}.md", md)
+    print(md)
+
+
 def _scaled_samples(spl: tuple[int, ...], f: float) -> tuple[int, ...]:
     return tuple(max(2, int(round(s * f))) for s in spl)
 

@@ -30,6 +30,7 @@ Ratios are against the ``default`` preset's row, measured in the same process. W
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import platform
 import sys
@@ -43,7 +44,7 @@ RESULTS = HERE / "results"
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from accuracy_vs_time_image import best_time, device_tag  # noqa: E402
+from accuracy_vs_time_image import best_time, device_tag, write_bench  # noqa: E402
 
 REFERENCE = "default"
 
@@ -146,8 +147,8 @@ def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, q
         row.update(time_steps(run, model, pool, scene, steps))
 
         cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
-        first, t_img = best_time(lambda: jax.block_until_ready(render_image(
-            cfg, model.state.params, scene, camera, bg, near, far, progress=False).rgb), repeats)
+        image = functools.partial(render_image, cfg, model.state.params, scene, camera, bg, near, far, progress=False)
+        first, t_img = best_time(lambda image=image: jax.block_until_ready(image().rgb), repeats)
         report, _ = evaluate_split(run.render, model.state.params, scene, view0, run.background, near, far, progress=False)
         row.update({"ms_per_image": round(1e3 * t_img, 1), "image_compile_s": round(max(0.0, first - t_img), 2),
                     "psnr_view0": round(float(report["psnr"]), 2)})
@@ -207,14 +208,7 @@ def main(argv=None) -> int:
     res = run_bench(args.run, args.scene, 2 if args.quick else args.steps, 1 if args.quick else args.repeats, args.quick,
                     log=lambda s: print(s, file=sys.stderr, flush=True), only=args.settings)
     res["command"] = "python experiments/bench_presets.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    from ne_jax.atomic import atomic_write_json, atomic_write_text
-
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    md = markdown(res)
-    stem = f"bench_presets_{device_tag()}"
-    atomic_write_json(args.out_dir / f"{stem}.json", res)
-    atomic_write_text(args.out_dir / f"{stem}.md", md)
-    print(md)
+    write_bench(args.out_dir, f"bench_presets_{device_tag()}", res, markdown(res))
     return 0
 
 

@@ -29,6 +29,7 @@ Writes ``experiments/results/bench_traversal.{json,md}`` (``--out-dir``; on an a
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import platform
 import sys
@@ -42,7 +43,7 @@ RESULTS = HERE / "results"
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from accuracy_vs_time_image import best_time, device_tag  # noqa: E402
+from accuracy_vs_time_image import best_time, device_tag, write_bench  # noqa: E402
 
 
 def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
@@ -127,9 +128,10 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
         fields = [np.concatenate([np.asarray(getattr(s, f)) for s in segs]) for f in ("t_lo", "t_hi", "node", "valid")]
         lost = int(sum(int(jnp.sum(s.overflow > 0)) for s in segs))
         render_cfg = run.render.replace(tree=cfg)
-        first, t_img = best_time(lambda: jax.block_until_ready(
-            render_image(render_cfg, model.state.params, model.scene, camera, bg, near, far, progress=False).rgb), repeats)
-        rgb = np.asarray(render_image(render_cfg, model.state.params, model.scene, camera, bg, near, far, progress=False).rgb)
+        image = functools.partial(render_image, render_cfg, model.state.params, model.scene, camera, bg, near, far,
+                                  progress=False)
+        first, t_img = best_time(lambda image=image: jax.block_until_ready(image().rgb), repeats)
+        rgb = np.asarray(image().rgb)
         if steps and "frontier_capacity" not in changes:  # training: the reference and the two-pass walks
             t_step, lost_train, params = train_steps(model, scene_dir, cfg, steps)
         if ref_seg is None:
@@ -192,14 +194,8 @@ def main(argv=None) -> int:
                     min(args.train_steps, 2) if args.quick else args.train_steps,
                     log=lambda s: print(s, file=sys.stderr, flush=True))
     res["command"] = "python experiments/bench_traversal.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    from ne_jax.atomic import atomic_write_json, atomic_write_text
-
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    md = markdown(res)
-    stem = "bench_traversal" if device_tag() == "cpu" else f"bench_traversal_{device_tag()}"
-    atomic_write_json(args.out_dir / f"{stem}.json", res)
-    atomic_write_text(args.out_dir / f"{stem}.md", md)
-    print(md)
+    tag = device_tag()
+    write_bench(args.out_dir, "bench_traversal" if tag == "cpu" else f"bench_traversal_{tag}", res, markdown(res))
     return 0
 
 

@@ -17,14 +17,14 @@ import pytest
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "accuracy_vs_time.py"
 
 
-def _load():
-    """The script as a module (registered in ``sys.modules``: its dataclasses need that)."""
-    if "accuracy_vs_time" not in sys.modules:
-        spec = importlib.util.spec_from_file_location("accuracy_vs_time", SCRIPT)
+def _load(name: str = "accuracy_vs_time"):
+    """``experiments/<name>.py`` as a module (registered in ``sys.modules``: dataclasses need that)."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, SCRIPT.parent / f"{name}.py")
         mod = importlib.util.module_from_spec(spec)
-        sys.modules["accuracy_vs_time"] = mod
+        sys.modules[name] = mod
         spec.loader.exec_module(mod)
-    return sys.modules["accuracy_vs_time"]
+    return sys.modules[name]
 
 
 @pytest.fixture(scope="module")
@@ -250,9 +250,7 @@ def test_image_frontier_settings_change_only_the_frontier():
 def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_path):
     """experiments/bench_traversal.py --quick on the smoke-test model: the two-pass walk gives the
     reference's segments, pixels and (after 2 training steps) parameters exactly."""
-    spec = importlib.util.spec_from_file_location("bench_traversal", SCRIPT.parent / "bench_traversal.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _load("bench_traversal")
     _, _, run_dir = image_run
     assert bench.main(["--run", str(run_dir), "--quick", "--out-dir", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "bench_traversal.json").read_text())
@@ -268,9 +266,7 @@ def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_pa
 def test_bench_presets_quick(image_run, tmp_path):
     """experiments/bench_presets.py --quick on the smoke-test model: one row per preset measured, the
     ratios against ``default``, the projection from the measured step, and clear refusals."""
-    spec = importlib.util.spec_from_file_location("bench_presets", SCRIPT.parent / "bench_presets.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _load("bench_presets")
     _, _, run_dir = image_run
     assert bench.main(["--run", str(run_dir), "--quick", "--out-dir", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "bench_presets_cpu.json").read_text())
@@ -295,9 +291,7 @@ def test_compare_runs_same_and_different(image_run, tmp_path, capsys):
     copy whose checkpoint holds other parameters is not (exit 1)."""
     import shutil
 
-    spec = importlib.util.spec_from_file_location("compare_runs", SCRIPT.parent / "compare_runs.py")
-    compare = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(compare)
+    compare = _load("compare_runs")
     _, _, run_dir = image_run
     assert compare.main([str(run_dir), str(run_dir)]) == 0
     assert "every array equal bit for bit: True" in capsys.readouterr().out
