@@ -2,7 +2,8 @@
 
 Estimation: Open3D ``estimate_normals`` (PCA of the neighbourhood) with a hybrid KD-tree search,
 radius ``cfg.radius_factor`` times the mean nearest-neighbour spacing, at most ``cfg.max_nn``
-neighbours. Re-run after every change of the cloud (growing, pruning, editing).
+neighbours (:func:`~ne_jax.pointcloud.neighbours.pca_normals`: the same on scipy where Open3D
+cannot be imported). Re-run after every change of the cloud (growing, pruning, editing).
 
 Orientation (``cfg.orient``) — PCA gives an axis, not a sign:
 
@@ -23,8 +24,8 @@ Orientation (``cfg.orient``) — PCA gives an axis, not a sign:
     point's own nearest camera).
 ``"tangent_plane"``
     Open3D ``orient_normals_consistent_tangent_plane(cfg.tangent_k)`` (propagation over a Riemannian
-    graph), then one global sign chosen by the visibility votes. Falls back to ``"visibility"``
-    where Open3D refuses the input (degenerate clouds).
+    graph), then one global sign chosen by the visibility votes. Falls back to
+    ``"visibility_votes"`` where Open3D refuses the input (degenerate clouds) or cannot be imported.
 ``"none"``
     Open3D's arbitrary signs.
 
@@ -53,6 +54,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ne_jax.pointcloud.init import Views, visibility
+from ne_jax.pointcloud.neighbours import open3d_module, pca_normals
 
 ORIENTATIONS = ("visibility", "visibility_votes", "nearest_camera", "tangent_plane", "none")
 
@@ -129,14 +131,6 @@ def _degenerate_normals(xyz: np.ndarray) -> np.ndarray | None:
     return np.broadcast_to(perp, xyz.shape).copy()
 
 
-def _open3d_normals(cfg: NormalConfig, xyz: np.ndarray, spacing: float):
-    import open3d as o3d  # heavy import, host only
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.radius_factor * spacing, max_nn=cfg.max_nn))
-    return pcd
-
-
 def _visibility_votes(views: Views, xyz, normals, spacing, tolerance) -> np.ndarray:
     """``[N]`` sum over the views that see each point of ``cos(n, camera - p)``."""
     vis = visibility(views, xyz, spacing, tolerance)
@@ -211,9 +205,8 @@ def _propagate_signs(cfg: NormalConfig, xyz, normals, votes, spacing) -> np.ndar
 
 
 def _tangent_plane(cfg: NormalConfig, xyz, normals) -> np.ndarray | None:
-    import open3d as o3d
-
-    if len(xyz) <= cfg.tangent_k:
+    o3d = open3d_module()
+    if o3d is None or len(xyz) <= cfg.tangent_k:  # no scipy twin: the caller takes the visibility votes
         return None
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     pcd.normals = o3d.utility.Vector3dVector(normals)
@@ -243,7 +236,7 @@ def estimate_normals(cfg: NormalConfig, xyz, cameras=None) -> np.ndarray:
     spacing = mean_spacing(xyz)
     normals = _degenerate_normals(xyz)
     if normals is None:
-        normals = np.asarray(_open3d_normals(cfg, xyz, spacing).normals).copy()
+        normals = pca_normals(xyz, cfg.radius_factor * spacing, cfg.max_nn)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     bad = ~(np.isfinite(normals).all(1, keepdims=True) & (length > 1e-12))
     normals = np.where(bad, np.array([0.0, 0.0, 1.0]), normals / np.where(bad, 1.0, length))

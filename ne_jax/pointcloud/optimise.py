@@ -41,6 +41,7 @@ from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.knn import interpolate, knn_neighbors
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import Views
+from ne_jax.pointcloud.neighbours import statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import at_test_time, level_samples
 from ne_jax.render.renderer import PointScene, RenderConfig, values_needed, render_rays
@@ -262,20 +263,16 @@ def mean_neighbour_distance(xyz: np.ndarray, k: int) -> np.ndarray:
 
 
 def denoise_points(cfg: PointOptConfig, points: PointState) -> tuple[PointState, dict]:
-    """Open3D statistical outlier removal over the alive points (``cfg.outlier_neighbors``,
-    ``cfg.outlier_std_ratio``), keeping every point whose mean neighbour distance is below
-    ``cfg.outlier_min_ratio`` times the median one. Returns ``(points, report)``."""
-    import open3d as o3d
-
+    """Open3D's statistical outlier removal over the alive points (``cfg.outlier_neighbors``,
+    ``cfg.outlier_std_ratio``; :func:`~ne_jax.pointcloud.neighbours.statistical_outliers`), keeping
+    every point whose mean neighbour distance is below ``cfg.outlier_min_ratio`` times the median
+    one. Returns ``(points, report)``."""
     alive = np.flatnonzero(np.asarray(points.alive))
     if alive.size <= cfg.outlier_neighbors:
         return points, {"denoised": 0, "denoised_skipped": True,
                         "denoised_note": f"{alive.size} alive points <= outlier_neighbors={cfg.outlier_neighbors}"}
     xyz = np.asarray(points.xyz, np.float64)[alive]
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
-    _, inliers = pcd.remove_statistical_outlier(nb_neighbors=cfg.outlier_neighbors, std_ratio=cfg.outlier_std_ratio)
-    outlier = np.ones(alive.size, bool)
-    outlier[np.asarray(inliers, np.int64)] = False
+    outlier = statistical_outliers(xyz, cfg.outlier_neighbors, cfg.outlier_std_ratio)
     if cfg.outlier_min_ratio > 0 and outlier.any():
         mean_dist = mean_neighbour_distance(xyz, cfg.outlier_neighbors)
         outlier &= mean_dist >= cfg.outlier_min_ratio * np.median(mean_dist)
