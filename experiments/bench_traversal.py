@@ -20,7 +20,7 @@ setting, on all pixels of ``--views`` evenly spaced test views of the run's scen
   largest difference of any parameter after the N steps (0: the same training).
 
 The reference is measured twice: the second row is the run-to-run noise of the times and, on a GPU
-(whose scatter-adds are not reproducible bit for bit), of the pixels and parameters.
+(which does not repeat a computation bit for bit), of the pixels and parameters.
 
 Writes ``experiments/results/bench_traversal.{json,md}`` (``--out-dir``; on an accelerator
 ``bench_traversal_<device>.{json,md}``); prints the table.
