@@ -131,6 +131,27 @@ def best_time(fn, repeats: int) -> tuple[float, float]:
     return first, best
 
 
+def timed_steps(step, state, scene, batches) -> tuple:
+    """Run the jitted training ``step`` over ``batches`` (the first compiles): ``(state after, s per
+    step after the first, s of the first, lost)`` with ``lost = (overflow, dropped)`` summed over all
+    steps. The counts are read after the clock stops: a read each step would wait for the device."""
+    import jax
+
+    counts = []
+    t0 = time.perf_counter()
+    for i, batch in enumerate(batches):
+        state, m = step(state, scene, batch)
+        counts.append((m["overflow"], m["dropped"]))
+        if i == 0:
+            jax.block_until_ready(state.params)
+            first = time.perf_counter() - t0
+            t0 = time.perf_counter()
+    jax.block_until_ready(state.params)
+    per_step = (time.perf_counter() - t0) / max(1, len(batches) - 1)
+    lost = tuple(int(sum(int(c[j]) for c in counts)) for j in (0, 1))
+    return state, per_step, first, lost
+
+
 def device_tag() -> str:
     """``cpu``, or the accelerator JAX runs on as a file-name part (``nvidia_h100_80gb_hbm3``): benchmarks
     name their results after it, so a GPU's timings never overwrite the CPU's."""

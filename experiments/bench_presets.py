@@ -44,7 +44,7 @@ RESULTS = HERE / "results"
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from accuracy_vs_time_image import best_time, device_tag, write_bench  # noqa: E402
+from accuracy_vs_time_image import best_time, device_tag, timed_steps, write_bench  # noqa: E402
 
 REFERENCE = "default"
 
@@ -83,23 +83,12 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i)) for i in range(steps + 1)]
     render = fit_segment_budget(run.render, scene, batches[0].rays)
     step = make_train_step(run.train, render)
-    lost = []  # summed after the clock stops: reading a count each step would wait for the device
-    t0 = time.perf_counter()
-    for i, batch in enumerate(batches):
-        state, m = step(state, scene, batch)
-        lost.append((m["overflow"], m["dropped"]))
-        if i == 0:
-            jax.block_until_ready(state.params)
-            compile_s = time.perf_counter() - t0
-            t0 = time.perf_counter()
-    jax.block_until_ready(state.params)
-    per_step = (time.perf_counter() - t0) / steps
-    overflow, dropped = (int(sum(int(x[j]) for x in lost)) for j in (0, 1))
+    _, per_step, first_s, (overflow, dropped) = timed_steps(step, state, scene, batches)
     segs = intersect(scene.tree, batches[0].rays, run.render.tree)
     found = np.asarray(segs.valid).sum(1)
     rays = run.sampler.batch_size
     return {"batch_rays": rays, "segments_per_ray": render.segments_per_ray, "ms_per_step": round(1e3 * per_step, 2),
-            "us_per_ray": round(1e6 * per_step / rays, 3), "step_compile_s": round(compile_s - per_step, 2),
+            "us_per_ray": round(1e6 * per_step / rays, 3), "step_compile_s": round(first_s - per_step, 2),
             "train_segments_lost": overflow + dropped, "lost_to_capacity": overflow, "lost_to_budget": dropped,
             "first_batch": {"mean_segments": round(float(found.mean()), 2),
                             "rays_at_max_segments": int((found == run.render.tree.max_segments).sum()),

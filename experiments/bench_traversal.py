@@ -33,7 +33,6 @@ import functools
 import os
 import platform
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +42,7 @@ RESULTS = HERE / "results"
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from accuracy_vs_time_image import best_time, device_tag, write_bench  # noqa: E402
+from accuracy_vs_time_image import best_time, device_tag, timed_steps, write_bench  # noqa: E402
 
 
 def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
@@ -78,15 +77,8 @@ def train_steps(model, scene_dir: Path, tree_cfg, steps: int) -> tuple[float, in
     pool = build_pool(run.sampler, load_split(scene_dir, "train"), run.background)
     key = jax.random.PRNGKey(0)
     batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i)) for i in range(steps + 1)]
-    state, lost = model.state, []  # counts read after the clock stops (a read waits for the device)
-    for i, batch in enumerate(batches):
-        if i == 1:
-            jax.block_until_ready(state.params)
-            t0 = time.perf_counter()
-        state, m = step(state, model.scene, batch)
-        lost.append(m["overflow"] + m["dropped"])
-    jax.block_until_ready(state.params)
-    return (time.perf_counter() - t0) / steps, int(sum(int(x) for x in lost)), state.params
+    state, per_step, _, lost = timed_steps(step, model.state, model.scene, batches)
+    return per_step, sum(lost), state.params
 
 
 def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, quick: bool, steps: int = 0,

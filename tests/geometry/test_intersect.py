@@ -49,14 +49,19 @@ def compare(tree, rays, seg, cfg, include_grow=False, max_ambiguous=0.05):
     return o.shape[0] - skipped
 
 
+def hard_case(name):
+    """``(tree, rays, cfg)``: the padded cloud ``name``'s tree and its hard rays, at one capacity and
+    depth for every cloud (one compilation serves them all)."""
+    xyz, alive = padded(name)
+    cfg = CFG.replace(depth=10, frontier_capacity=64, max_segments=32)
+    tree = build_tree(xyz, alive, cfg)
+    o, d = hard_rays(tree, xyz, alive, n_boxes=4)
+    return tree, make_rays(o, d), cfg
+
+
 @pytest.mark.parametrize("name", sorted(CLOUDS))
 def test_matches_reference_on_hard_rays(name):
-    # One capacity and depth for every cloud: one compilation serves them all.
-    xyz, alive = padded(name)
-    cfg0 = CFG.replace(depth=10, frontier_capacity=64, max_segments=32)
-    tree = build_tree(xyz, alive, cfg0)
-    o, d = hard_rays(tree, xyz, alive, n_boxes=4)
-    rays = make_rays(o, d)
+    tree, rays, cfg0 = hard_case(name)
     seg, cfg = intersect_checked(tree, rays, cfg0)
     compare(tree, rays, seg, cfg)
     assert int(jnp.sum(seg.num_segments)) > 0
@@ -162,11 +167,7 @@ SEG_FIELDS = ("t_lo", "t_hi", "node", "level", "valid", "frontier_overflow", "se
 
 @pytest.mark.parametrize("name", ["sphere_700", "coplanar", "random_300"])
 def test_two_pass_equals_one_wide_pass(name):
-    xyz, alive = padded(name)
-    wide = CFG.replace(depth=10, frontier_capacity=64, max_segments=32)
-    tree = build_tree(xyz, alive, wide)
-    o, d = hard_rays(tree, xyz, alive, n_boxes=4)
-    rays = make_rays(o, d)
+    tree, rays, wide = hard_case(name)
     one = intersect(tree, rays, wide)
     assert int(jnp.max(one.frontier_overflow)) == 0
     narrow = intersect(tree, rays, wide.replace(frontier_capacity=2))
