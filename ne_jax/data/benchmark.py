@@ -7,7 +7,9 @@ Layout of ``<root>`` for one preset::
     <root>/<scene>/scene.json          what was made, how, and the edits' descriptions
     <root>/<scene>/edits/<edit>/       the edited scene as ground truth: transforms_{train,test}.json,
                                        images from the *same* cameras, points.ply with an ``index``
-                                       property (the original sample each edited point came from)
+                                       property (the original sample each edited point came from);
+                                       a whole-scene turn's scene.json adds ``rigid`` (its 4x4 motion)
+                                       and ``moves_environment``
 
 Everything is deterministic for a seed (same seed, same bytes), and each scene directory appears
 only when complete (written to a temporary sibling, then renamed).
@@ -101,10 +103,11 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
             t1 = time.perf_counter()
             target = out if edit is None else out / "edits" / edit_name
             target.mkdir(parents=True, exist_ok=True)
-            caster = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials)
+            caster = S.RayCaster(S.truth_mesh(scene.mesh, edit), scene.materials)
             splits = ("train", "val", "test") if edit is None else ("train", "test")
             for split in splits:
-                images = _render_split(caster, cams[split], preset, f"{scene_name}/{edit_name or 'original'}/{split}")
+                images = _render_split(caster, S.truth_cameras(edit, cams[split]), preset,
+                                       f"{scene_name}/{edit_name or 'original'}/{split}")
                 write_split(target, split, images, cams[split], S.CAMERA_ANGLE_X)
             _write_points(target / "points.ply", samples if edit is None else S.edit_samples(samples, edit))
             meta = {
@@ -118,6 +121,9 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
                 "far": S.FAR,
                 "renderer": "open3d RaycastingScene, two-sided Blinn-Phong, 2 shadowed directional lights, sky reflection",
             }
+            if edit is not None and edit.rigid is not None:
+                meta["rigid"] = [list(row) for row in edit.rigid]
+                meta["moves_environment"] = edit.moves_environment
             if edit is None:
                 meta["edits"] = {n: {"kind": e.kind, "description": e.description} for n, e in scene.edits.items()}
             atomic_write_json(target / "scene.json", meta)

@@ -16,6 +16,13 @@ view-dependent colour that IST exists for. It has no inter-reflections.
 Textures are functions of the *rest* (unedited) position, so a texture moves with the surface when
 the scene is edited.
 
+Every scene ends with two whole-scene turns (:func:`scene_turns`), 40 degrees about the unit axis
+``normalize(1, 1, 2)`` through the origin (the cameras' target): ``turn_with_light`` moves the lights
+and the sky with the scene, so its ground truth is exactly the original scene seen from the cameras
+``T^-1 @ c2w`` (:func:`truth_cameras`) and reflections and highlights stay attached to the surface —
+the case the IST exists for; ``turn_scene`` keeps lights and sky fixed in the world and renders the
+turned mesh, so highlights and reflections slide over the surface as in every other edit.
+
 Scenes (all inside ``[-1, 1]^3``, z up, as in Blender):
 
 ========  ================================================================================
@@ -146,8 +153,24 @@ def _parts(parts: list[tuple[M.TriMesh, Material]]):
     return M.concatenate(meshes), tuple(materials)
 
 
+TURN_AXIS = (1.0, 1.0, 2.0)
+"""Axis of the whole-scene turns (normalised by the edit)."""
+TURN_DEGREES = 40.0
+TURN_PIVOT = (0.0, 0.0, 0.0)
+"""The turns' pivot: the point every camera looks at."""
+
+
+def scene_turns() -> tuple[D.Edit, D.Edit]:
+    """The two whole-scene turns every scene ends with (same names, same motion ``T`` in every
+    scene): ``turn_with_light`` (lights and sky turn with the scene: ``moves_environment``) and
+    ``turn_scene`` (lights and sky stay)."""
+    return (D.rigid_scene("turn_with_light", TURN_AXIS, TURN_DEGREES, TURN_PIVOT, moves_environment=True),
+            D.rigid_scene("turn_scene", TURN_AXIS, TURN_DEGREES, TURN_PIVOT))
+
+
 def _edits(*edits: D.Edit) -> dict[str, D.Edit]:
-    return {e.name: e for e in edits}
+    """The scene's edits by name: its own, then the whole-scene turns (:func:`scene_turns`)."""
+    return {e.name: e for e in (*edits, *scene_turns())}
 
 
 def make_stool(detail: float) -> Scene:
@@ -277,13 +300,35 @@ class EditedMesh:
 
 
 def apply_to_mesh(mesh: M.TriMesh, edit: D.Edit | None) -> EditedMesh:
-    """Apply ``edit`` to the mesh vertices; drop every face touching a deleted vertex."""
+    """Apply ``edit`` to the mesh vertices; drop every face touching a deleted vertex. (The geometry of
+    the edited scene; its ground truth is rendered by :func:`truth_mesh` and :func:`truth_cameras`.)"""
     if edit is None:
         return EditedMesh(mesh.vertices, mesh.vertices, mesh.faces, mesh.material)
     moved, deleted = edit.apply(mesh.vertices)
     moved, deleted = np.asarray(moved, np.float64), np.asarray(deleted)
     keep = ~deleted[mesh.faces].any(axis=1)
     return EditedMesh(moved, mesh.vertices, mesh.faces[keep], mesh.material[keep])
+
+
+def truth_mesh(mesh: M.TriMesh, edit: D.Edit | None) -> EditedMesh:
+    """The mesh the ground truth of ``edit`` is rendered from: the original one for an edit that moves
+    the environment with the scene (``edit.moves_environment``; the cameras move instead, see
+    :func:`truth_cameras`), otherwise the edited one (:func:`apply_to_mesh`)."""
+    return apply_to_mesh(mesh, None if edit is not None and edit.moves_environment else edit)
+
+
+def truth_cameras(edit: D.Edit | None, c2ws: np.ndarray) -> np.ndarray:
+    """The cameras ``[..., 4, 4]`` the ground truth of ``edit`` seen from ``c2ws`` is rendered from:
+    ``T^-1 @ c2w`` for an edit whose lights and sky move with the scene by ``T``
+    (``edit.moves_environment``, ``edit.matrix``), else ``c2ws`` unchanged. Exact: moving the scene,
+    the lights and the environment by ``T`` and looking from ``c2w`` is looking at the original from
+    ``T^-1 @ c2w``."""
+    c2ws = np.asarray(c2ws, np.float64)
+    if edit is None or not edit.moves_environment:
+        return c2ws
+    if edit.matrix is None:
+        raise ValueError(f"edit {edit.name!r}: moves_environment needs a whole-scene rigid motion (edit.rigid), found none")
+    return np.linalg.inv(edit.matrix) @ c2ws
 
 
 # ---------------------------------------------------------------------------------- cameras
@@ -331,14 +376,19 @@ def orbit_cameras(count: int, elevation_deg: float = 25.0) -> np.ndarray:
 
 
 class RayCaster:
-    """Blinn-Phong ray caster over one (edited) scene mesh; see the module docstring."""
+    """Blinn-Phong ray caster over one (edited) scene mesh; see the module docstring.
 
-    def __init__(self, mesh: EditedMesh, materials: tuple[Material, ...]):
+    ``environment``: a rotation ``[3, 3]`` applied to the lights and the sky (light directions ``R l``,
+    sky seen in direction ``d`` is ``sky(R^T d)``); ``None`` (the benchmark's setting): as defined by
+    ``LIGHTS`` and :func:`sky`."""
+
+    def __init__(self, mesh: EditedMesh, materials: tuple[Material, ...], environment: np.ndarray | None = None):
         import open3d as o3d  # heavy import, only where rendering happens
 
         self._o3d = o3d
         self.mesh = mesh
         self.materials = materials
+        self.environment = None if environment is None else np.asarray(environment, np.float64)
         self.normals = M.vertex_normals(mesh.vertices, mesh.faces)
         self.scene = o3d.t.geometry.RaycastingScene()
         if len(mesh.faces):
@@ -394,6 +444,8 @@ class RayCaster:
         for light in LIGHTS:
             ldir = np.asarray(light.direction, np.float64)
             ldir = ldir / np.linalg.norm(ldir)
+            if self.environment is not None:
+                ldir = self.environment @ ldir
             ndotl = np.clip(n @ ldir, 0.0, None)
             lit = ndotl > 0
             if light.shadows:
@@ -403,6 +455,8 @@ class RayCaster:
             spec = ks * np.clip(np.sum(n * half, 1), 0.0, None) ** shin
             colour += (light.intensity * lit)[:, None] * (albedo * ndotl[:, None] + spec[:, None])
         mirror = d - 2.0 * np.sum(d * n, 1, keepdims=True) * n
+        if self.environment is not None:
+            mirror = mirror @ self.environment  # R^T d: the direction in the unrotated environment
         colour += refl[:, None] * sky(mirror)
         rgb[hit] = colour
         return rgb, hit

@@ -8,6 +8,8 @@ jit-able and differentiable in their parameters (``bend_points(p, angle=...)`` w
 
 Building blocks: regions (``[N, 3] -> [N] bool``), the pure deformations ``bend_points``,
 ``twist_points``, ``rotate_points``, ``cut_points``, and factories returning named :class:`Edit`s.
+A whole-scene rigid edit (:func:`rigid_scene`) also carries its motion ``T`` (``Edit.rigid``,
+``Edit.matrix``) and whether the environment moves with it (``Edit.moves_environment``).
 """
 
 from __future__ import annotations
@@ -144,6 +146,14 @@ class Edit:
     move: Callable[[jax.Array], jax.Array]
     delete: Region | None = None
     description: str = ""
+    rigid: tuple[tuple[float, ...], ...] | None = None
+    """The rigid motion ``T`` of the whole scene as a ``4x4`` row-major nested tuple (hashable, so an
+    edit stays a static jit argument) when ``move(p) = R p + t`` for every point; ``None`` for any
+    other edit. :attr:`matrix` gives it as an array."""
+    moves_environment: bool = False
+    """For a whole-scene rigid edit: the lights and the environment move with the scene by ``T``, so
+    the edited scene seen from camera ``c2w`` is the original seen from ``T^-1 @ c2w``. Only the
+    benchmark's ground truth reads it; ``move`` and ``delete`` are the same either way."""
 
     def __call__(self, points) -> tuple[jax.Array, jax.Array]:
         """``(moved [N, 3], deleted [N] bool)`` for original ``points [N, 3]``."""
@@ -154,6 +164,12 @@ class Edit:
     def apply(self, points) -> tuple[jax.Array, jax.Array]:
         """Like calling the edit, but compiled once per edit (for large host-side clouds)."""
         return _apply_compiled(self, _vec(points))
+
+    @property
+    def matrix(self) -> np.ndarray | None:
+        """``T`` ``[4, 4]`` float64 (see :attr:`rigid`), or ``None`` for an edit that is not one
+        whole-scene rigid motion. Cameras move with the scene as ``T @ c2w``."""
+        return None if self.rigid is None else np.array(self.rigid, np.float64)
 
 
 _apply_compiled = jax.jit(lambda edit, p: edit(p), static_argnums=0)
@@ -179,6 +195,42 @@ def rigid_part(name: str, region: Region, axis, angle_deg: float, pivot, transla
     def move(p):
         return jnp.where(region(p)[:, None], rotate_points(p, axis, a, pivot) + t, p)
     return Edit(name, "rigid", move, description=f"rotate a part by {angle_deg:g} deg about {tuple(axis)}")
+
+
+def rigid_motion(axis, angle_deg: float, pivot=(0.0, 0.0, 0.0), translation=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """``T`` ``[4, 4]`` float64: rotate by ``angle_deg`` about the line through ``pivot`` along
+    ``axis`` (any length > 0), then translate by ``translation``: ``T p = R (p - pivot) + pivot + t``."""
+    k = np.asarray(axis, np.float64)
+    k = k / np.linalg.norm(k)
+    a = np.deg2rad(angle_deg)
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    rot = np.eye(3) + np.sin(a) * kx + (1.0 - np.cos(a)) * (kx @ kx)
+    pivot = np.asarray(pivot, np.float64)
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = pivot - rot @ pivot + np.asarray(translation, np.float64)
+    return out
+
+
+def rigid_scene(name: str, axis, angle_deg: float, pivot=(0.0, 0.0, 0.0), translation=(0.0, 0.0, 0.0),
+                moves_environment: bool = False) -> Edit:
+    """Move the whole scene by one rigid motion ``T`` (:func:`rigid_motion`); ``edit.rigid`` /
+    ``edit.matrix`` expose ``T``. ``moves_environment``: the benchmark's lights and sky move with the
+    scene (see :attr:`Edit.moves_environment`); the point function is the same either way.
+    ``move(p) = p @ R^T + t`` with ``R``, ``t`` the float32 rounding of ``T``."""
+    motion = rigid_motion(axis, angle_deg, pivot, translation)
+    rot, shift = motion[:3, :3].astype(np.float32), motion[:3, 3].astype(np.float32)
+
+    def move(p):
+        return p @ jnp.asarray(rot.T) + jnp.asarray(shift)
+
+    axis_unit = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    env = "lights and sky turn with it" if moves_environment else "lights and sky stay"
+    shift_text = f", then shift by {tuple(float(x) for x in translation)}" if np.any(translation) else ""
+    return Edit(name, "rigid_scene", move, description=(
+        f"turn the whole scene by {angle_deg:g} deg about axis {tuple(np.round(axis_unit, 4).tolist())} through "
+        f"{tuple(float(x) for x in pivot)}{shift_text}; {env}"),
+        rigid=tuple(tuple(float(x) for x in row) for row in motion), moves_environment=moves_environment)
 
 
 def cut(name: str, point, normal, gap: float) -> Edit:

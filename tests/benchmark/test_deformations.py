@@ -117,3 +117,39 @@ def test_rotation_matrix_is_orthonormal():
     r = np.asarray(D.rotation_matrix((1, 2, 3), 0.7))
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-6)
     assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_rigid_scene_moves_every_point_by_its_matrix(points):
+    edit = D.rigid_scene("turn", (1, 1, 2), 40.0, pivot=(0.2, -0.1, 0.3), translation=(0.0, 0.5, 0.0))
+    motion = edit.matrix
+    rot, shift = motion[:3, :3], motion[:3, 3]
+    np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(rot @ (np.array([1.0, 1, 2]) / np.sqrt(6)), np.array([1.0, 1, 2]) / np.sqrt(6), atol=1e-12)
+    np.testing.assert_allclose(motion[:3, :3] @ [0.2, -0.1, 0.3] + shift, [0.2, 0.4, 0.3], atol=1e-12)  # pivot, shifted
+    # the same rotation as rotate_points (then the translation), in float32
+    ref = np.asarray(D.rotate_points(jnp.asarray(points), (1, 1, 2), np.deg2rad(40.0), (0.2, -0.1, 0.3))) + [0, 0.5, 0]
+    moved, deleted = map(np.asarray, edit(points))
+    assert not deleted.any()
+    np.testing.assert_allclose(moved, points.astype(np.float64) @ rot.T + shift, atol=2e-6)
+    np.testing.assert_allclose(moved, ref, atol=2e-6)
+    normals = np.asarray(D.transform_normals(edit, points, np.tile([[0.0, 0.6, 0.8]], (len(points), 1))))
+    np.testing.assert_allclose(normals, np.tile(rot @ [0.0, 0.6, 0.8], (len(points), 1)), atol=2e-6)
+
+
+def test_rigid_scene_flags_and_other_edits():
+    fixed = D.rigid_scene("a", (0, 0, 1), 30.0)
+    moving = D.rigid_scene("b", (0, 0, 1), 30.0, moves_environment=True)
+    assert not fixed.moves_environment and moving.moves_environment and fixed.kind == moving.kind == "rigid_scene"
+    np.testing.assert_array_equal(fixed.matrix, moving.matrix)
+    assert hash(fixed) != hash(moving) or fixed != moving  # hashable: a static jit argument
+    # edits that are not one whole-scene motion carry none
+    part = D.rigid_part("r", D.halfspace((0, 0, 1), 0.0), (1, 0, 0), 20.0, (0, 0, 0))
+    assert part.rigid is None and part.matrix is None and not part.moves_environment
+    # cameras move with the scene as T @ c2w: a point fixed in the camera frame follows T
+    c2w = np.eye(4)
+    c2w[:3, 3] = (0.0, 0.0, 4.0)
+    p_cam = np.array([0.1, -0.2, -3.0, 1.0])
+    np.testing.assert_allclose((moving.matrix @ c2w) @ p_cam, moving.matrix @ (c2w @ p_cam), atol=1e-12)
+    moved = np.asarray(moving(np.asarray([(c2w @ p_cam)[:3]], np.float32))[0])[0]
+    np.testing.assert_allclose(moved, ((moving.matrix @ c2w) @ p_cam)[:3], atol=2e-6)

@@ -106,4 +106,4 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "contact sheet" in out
     assert (tmp_path / "contact_sheet.png").is_file()
-    assert len(list_variants(tmp_path / "benchmark")) == 4 * 5
+    assert len(list_variants(tmp_path / "benchmark")) == 4 * 7  # original + six edits per scene
