@@ -4,6 +4,14 @@ A scene is a point cloud with per-point features and confidences; rendering walk
 K-D-tree voxels and integrates KNN-interpolated features; editing moves indexed points.
 Sub-packages follow the data flow: ``data`` (cameras, rays, scenes) -> ``geometry`` (points, K-D
 tree, traversal, KNN) -> ``render`` -> ``train`` -> ``edit``.
+
+Importing ``ne_jax`` gives JAX one host device per usable CPU core (on the CPU platform only, and
+only where no device count was given to JAX itself), so the ray mesh of :mod:`ne_jax.devices` uses
+every core; ``NE_JAX_HOST_DEVICES=1`` opts out (:mod:`ne_jax._platform`).
 """
+
+from ne_jax._platform import configure_host_devices as _configure_host_devices
+
+_configure_host_devices()
 
 __version__ = "0.1.0"

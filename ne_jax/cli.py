@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -253,6 +254,9 @@ def _cmd_demo(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ne-jax", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--host-devices", type=int, default=None, metavar="N",
+                        help="CPU only: split rays over N host devices (sets NE_JAX_HOST_DEVICES; default: one per "
+                             "usable core; 1 opts out; a count given to JAX itself in XLA_FLAGS wins)")
     multi = parser.add_argument_group("multi-host (jax.distributed; one process per host, the same flags on each)")
     multi.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="address of process 0")
     multi.add_argument("--num-processes", type=int, default=1, help="number of processes (hosts)")
@@ -369,6 +373,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if args.host_devices is not None:  # before anything touches JAX's backends
+            from ne_jax._platform import ENV, configure_host_devices
+
+            if args.host_devices < 1:
+                raise ValueError(f"--host-devices: expected an integer >= 1 (1 opts out), found {args.host_devices}")
+            os.environ[ENV] = str(args.host_devices)
+            configure_host_devices()
         if args.coordinator is not None or args.num_processes != 1:
             from ne_jax.devices import initialize_distributed
 

@@ -12,7 +12,12 @@ the batch's mean.
 
 One code path: the renderer and the training step always run through the mesh, and one device is
 the mesh of size 1. :func:`default_mesh` spans every device JAX sees (all hosts' after
-:func:`initialize_distributed`); a ray batch must split evenly (:func:`padded_size`).
+:func:`initialize_distributed`): the accelerators on a GPU/TPU machine, and on a CPU one host
+device per usable core, which ``import ne_jax`` asks JAX for (:mod:`ne_jax._platform`;
+``NE_JAX_HOST_DEVICES=1`` or ``ne-jax --host-devices 1`` opts out). A ray batch must split evenly:
+render chunks are padded to a multiple of the mesh size (:func:`padded_size`), and a training batch
+that does not split over the whole mesh runs on the largest leading part of it that it does split
+over (:func:`even_mesh`; e.g. 1024 rays on 3 devices use 2).
 
 Multi-host: start one process per host with the same ``--coordinator host:port`` and
 ``--num-processes N`` and its own ``--process-id`` (the ``ne-jax`` global flags), which call
@@ -55,6 +60,17 @@ def padded_size(num_rays: int, mesh: Mesh) -> int:
     return -(-int(num_rays) // n) * n
 
 
+def even_mesh(num_rays: int, mesh: Mesh) -> Mesh:
+    """``mesh`` if ``num_rays`` splits evenly over it, else the one-axis mesh over its first ``d``
+    devices, ``d`` the largest size that divides ``num_rays`` (1 at worst): results equal the
+    whole mesh's, only fewer devices share the work."""
+    n = mesh.devices.size
+    d = max(k for k in range(1, n + 1) if int(num_rays) % k == 0)
+    if d == n:
+        return mesh
+    return jax.make_mesh((d,), (RAYS,), axis_types=(AxisType.Auto,), devices=list(mesh.devices.flat)[:d])
+
+
 def shard_rays(fn, mesh: Mesh, num_replicated: int, out_specs=P(RAYS)):
     """``fn(*replicated, *per_ray)`` under ``jax.shard_map`` on ``mesh``: the first ``num_replicated``
     arguments replicated (``P()``), the rest split along their leading (ray) axis; outputs split
@@ -80,4 +96,4 @@ def initialize_distributed(coordinator: str, num_processes: int, process_id: int
     default_mesh.cache_clear()
 
 
-__all__ = ["RAYS", "default_mesh", "initialize_distributed", "padded_size", "ray_mesh", "shard_rays"]
+__all__ = ["RAYS", "default_mesh", "even_mesh", "initialize_distributed", "padded_size", "ray_mesh", "shard_rays"]

@@ -38,7 +38,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ne_jax.checks import checked, stage_check
-from ne_jax.devices import RAYS, default_mesh, shard_rays
+from ne_jax.devices import RAYS, default_mesh, even_mesh, shard_rays
 from ne_jax.render.renderer import PointScene, RenderConfig, SegmentAux, render_rays_with_aux
 from ne_jax.train.losses import loss_terms
 from ne_jax.train.sampler import Batch
@@ -52,7 +52,8 @@ def _all_finite(tree) -> jax.Array:
 
 def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | None = None):
     """The jitted ``step_fn(state, scene, batch) -> (state, metrics)``, the batch's rays split over
-    ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the batch size a multiple of its size):
+    ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; a batch that does not split evenly over
+    it runs on the largest leading part it does split over, :func:`~ne_jax.devices.even_mesh`):
     each device renders its rays and differentiates its share of the losses, the terms and
     gradients are averaged over the devices (``pmean``), and the replicated Adam update follows.
 
@@ -68,6 +69,22 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | Non
     lost to traversal capacities / the packing budget, summed over the batch; should be 0).
     """
     mesh = default_mesh() if mesh is None else mesh
+    if mesh.devices.size == 1 or render_cfg.checks:
+        return _make_train_step(cfg, render_cfg, mesh)
+    steps: dict = {}  # one step per mesh the batch sizes split over (one, for a fixed batch size)
+
+    def step_on_even_mesh(state: TrainState, scene: PointScene, batch: Batch):
+        sub = even_mesh(batch.rays.num_rays, mesh)
+        if sub not in steps:
+            steps[sub] = _make_train_step(cfg, render_cfg, sub)
+        return steps[sub](state, scene, batch)
+
+    step_on_even_mesh._cache_size = lambda: sum(s._cache_size() for s in steps.values())
+    return step_on_even_mesh
+
+
+def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
+    """:func:`make_train_step` on ``mesh``, the batch size a multiple of its size."""
     weights = cfg.loss.weights()
     optimizer = cfg.optimizer()
     schedule = cfg.schedule()

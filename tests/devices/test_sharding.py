@@ -4,7 +4,7 @@ single-device ones, and repeated steps do not recompile.
 These tests need several devices: ``bash run.sh test`` runs them as their own step with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (``pytest -m multidevice tests/devices``);
 in a one-device process they are deselected. The mesh-independent parts (the mesh helpers, the
-distributed flags) run in the default suite.
+distributed flags) run in the default suite. Device counts 2, 3 (odd) and 4 against one device.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from ne_jax.cli import build_parser
-from ne_jax.devices import padded_size, ray_mesh
+from ne_jax.devices import default_mesh, even_mesh, padded_size, ray_mesh
 from ne_jax.render.renderer import render_chunked
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
@@ -66,11 +66,13 @@ def scene_and_rays():
 
 
 @multidevice
-@pytest.mark.parametrize("devices", [2, 4])
-def test_sharded_render_equals_single_device(scene_and_rays, devices):
+@pytest.mark.parametrize("devices, chunk", [(2, None), (3, 25), (4, None)])
+def test_sharded_render_equals_single_device(scene_and_rays, devices, chunk):
+    """3 devices (odd): chunks of 25 rays padded to 27, 64 rays in three chunks, the last one padded."""
     params, scene, rays, bg = scene_and_rays
     one = render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(1))
-    many = render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(devices))
+    cfg = CFG if chunk is None else CFG.replace(chunk=chunk)
+    many = render_chunked(cfg, params, scene, rays, bg, mesh=ray_mesh(devices))
     assert {d.id for d in many.rgb.devices()} == set(range(devices))
     for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(many)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
@@ -106,4 +108,27 @@ def test_sharded_training_step_equals_single_device_and_compiles_once(scene_and_
             np.testing.assert_allclose(np.asarray(m4[k]), np.asarray(m1[k]), rtol=2e-5, atol=1e-6, err_msg=k)
     assert compiles == []
     for a, b in zip(jax.tree_util.tree_leaves((s1.params, s1.points)), jax.tree_util.tree_leaves((s4.params, s4.points))):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
+
+
+@multidevice
+def test_a_batch_that_does_not_split_over_the_mesh_trains_on_the_part_it_splits_over(scene_and_rays):
+    """66 rays on the default mesh (4 devices): the step runs on 3 (odd), equal to one device."""
+    params, scene, rays, bg = scene_and_rays
+    mesh = default_mesh()
+    assert mesh.devices.size == 4
+    assert even_mesh(64, mesh) is mesh and even_mesh(66, mesh).devices.size == 3 and even_mesh(67, mesh).devices.size == 1
+    rays = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a[:2]]), rays)
+    tcfg = TrainConfig(total_steps=10)
+    state = init_train_state(tcfg, CFG, scene.points, jax.random.key(0))
+    state = state.replace(params=params, opt_state=tcfg.optimizer().init({"params": params, "points": state.points}))
+    batch = _batch(rays, bg)
+    s1, m1 = make_train_step(tcfg, CFG, ray_mesh(1))(state, scene, batch)
+    step = make_train_step(tcfg, CFG)
+    s3, m3 = step(state, scene, batch)
+    assert {d.id for d in jax.tree_util.tree_leaves(s3.params)[0].devices()} == {0, 1, 2}
+    assert bool(m3["ok"]) and step._cache_size() == 1
+    for k in m1:
+        np.testing.assert_allclose(np.asarray(m3[k]), np.asarray(m1[k]), rtol=2e-5, atol=1e-6, err_msg=k)
+    for a, b in zip(jax.tree_util.tree_leaves((s1.params, s1.points)), jax.tree_util.tree_leaves((s3.params, s3.points))):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
