@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +34,7 @@ from ne_jax.edit.ist import ISTConfig, ISTPlan, ist_from_plan, ist_neighbors, pl
 from ne_jax.edit.targets import EditSource, edit_target
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
-from ne_jax.render.renderer import RenderConfig
+from ne_jax.render.renderer import PointScene, RenderConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +50,23 @@ class EditConfig:
     reestimate_normals: bool = True
     """Off: every point keeps its original normal, unrotated (an analysis switch: what the normals
     re-estimated on the edited cloud contribute; the IST is still computed from them)."""
+    tree: Literal["carry", "rebuild"] = "carry"
+    """The edited scene's K-D tree (:meth:`~ne_jax.render.renderer.PointScene.edited`): ``"carry"``
+    keeps the trained partition and candidate sets and moves the boxes with their points
+    (:mod:`ne_jax.geometry.carry`); ``"rebuild"`` builds a new tree on the edited cloud (the paper)."""
+    tear_factor: float = 2.0
+    """``"carry"``: a subtree whose points the best rigid motion misses by more than this many
+    point spacings is torn (re-boxed in world coordinates)."""
+
+    def __post_init__(self):
+        if self.tree not in ("carry", "rebuild"):
+            raise ValueError(f"EditConfig.tree: expected 'carry' or 'rebuild', found {self.tree!r}")
+        if not self.tear_factor > 0:
+            raise ValueError(f"EditConfig.tear_factor: expected a value > 0, found {self.tear_factor}")
+
+    def scene(self, base: PointScene, points: PointState, render: RenderConfig) -> PointScene:
+        """The edited scene of ``points`` (an edit of ``base.points``) with this config's tree."""
+        return base.edited(points, render, carry=self.tree == "carry", tear_factor=self.tear_factor)
 
 
 @struct.dataclass

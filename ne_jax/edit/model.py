@@ -22,7 +22,6 @@ from ne_jax.data.synthetic import SCENES, get_scene
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import Edit
 from ne_jax.edit.targets import EditError, EditSource
-from ne_jax.render.renderer import PointScene
 from ne_jax.train.loop import RunConfig, StartFrom, TrainedModel, TrainResult, save_trained, train
 
 
@@ -77,7 +76,7 @@ def edit_model(model: TrainedModel, edit: EditSource | str, out_dir: str | Path 
     points = apply_edit(model.state.point_state(model.scene.points), fn, cfg, report=report)
     run = model.run.replace(render=edited_render_config(model.run.render, ist))
     state = model.state.with_points(points, np.zeros(points.capacity, bool))
-    edited = TrainedModel(run=run, state=state, scene=PointScene.build(points, run.render), scene_dir=truth,
+    edited = TrainedModel(run=run, state=state, scene=cfg.scene(model.scene, points, run.render), scene_dir=truth,
                           meta=dict(model.meta))
     report = {"edit": label, "ist": ist, **report}
     if out_dir is not None:
@@ -115,6 +114,7 @@ def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene
     run = finetune_config(model.run, epochs, steps_per_epoch=steps_per_epoch, train_ist=train_ist,
                           optimise_points=optimise_points)
     start = StartFrom(params=model.state.params, points=model.state.point_state(model.scene.points),
+                      scene=model.scene if model.scene.rest_xyz is not None else None,
                       note={"from_step": int(model.state.step), "edit": model.meta.get("extra", {}).get("edit")})
     return train(run, scene_dir, run_dir, resume=resume, progress=progress, log=log, start=start)
 

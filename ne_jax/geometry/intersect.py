@@ -122,15 +122,38 @@ def _compact(mask, values, capacity):
     return out, kept, total
 
 
+def _ray_in_frame(tree: KDTree, node, level, origin, direction):
+    """The ray in the frame of the boxes of ``node`` (heap indices, any shape) at ``level``: the
+    carried frame of its ancestor at ``tree.frame_level`` (:class:`~ne_jax.geometry.kdtree.KDTree`),
+    or the world for nodes above that level. Returns ``(origin, direction)`` ``[..., 3]``; a rotation
+    keeps ``t`` the same distance along the ray."""
+    nf = tree.frame_rot.shape[0]
+    row = jnp.clip(((node + 1) >> jnp.maximum(level - tree.frame_level, 0)) - nf, 0, nf - 1)
+    rot, shift = tree.frame_rot[row], tree.frame_shift[row]
+    o = jnp.sum(rot * origin, axis=-1) + shift
+    d = jnp.sum(rot * direction, axis=-1)
+    carried = jnp.broadcast_to(level >= tree.frame_level, node.shape)[..., None]
+    return jnp.where(carried, o, origin), jnp.where(carried, d, direction)
+
+
 def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig, first_emit: int, f_cap: int):
     dtype = origin.dtype
     depth = tree.depth
     m_cap = cfg.max_segments
     par, inv = _parallel_and_inverse(direction)
     min_len = (cfg.min_hit_factor * tree.spacing).astype(dtype)
-    test = functools.partial(slab_intersect, origin=origin, inv_dir=inv, parallel=par, near=near, far=far, min_len=min_len)
+    world_test = functools.partial(slab_intersect, origin=origin, inv_dir=inv, parallel=par, near=near, far=far,
+                                   min_len=min_len)
+    if tree.has_frames:
+        def test(lo, hi, node, level):  # boxes in their carried frames
+            o, d = _ray_in_frame(tree, node, level, origin, direction)
+            p, i = _parallel_and_inverse(d)
+            return slab_intersect(lo, hi, o, i, p, near, far, min_len)
+    else:
+        def test(lo, hi, node, level):
+            return world_test(lo, hi)
 
-    r_lo, r_hi, r_hit = test(tree.lo[0], tree.hi[0])
+    r_lo, r_hi, r_hit = test(tree.lo[0], tree.hi[0], jnp.zeros((), jnp.int32), 0)
     r_hit = r_hit & (tree.count[0] > 0)
     slot0 = jnp.arange(f_cap) == 0
     front = (
@@ -157,7 +180,7 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
     def step(carry, level):
         (node, t_lo, t_hi, live), out, n_out, f_over = carry
         kids = jnp.stack([2 * node + 1, 2 * node + 2], axis=-1)  # [F, 2]
-        k_lo, k_hi, k_hit = test(tree.lo[kids], tree.hi[kids])
+        k_lo, k_hi, k_hit = test(tree.lo[kids], tree.hi[kids], kids, level + 1)
         k_hit = k_hit & live[:, None] & (tree.count[kids] > 0)
         leaf_parent = ~jnp.any(k_hit, axis=-1)
         mask = live & tree.valid[node] & leaf_parent & (level >= first_emit)

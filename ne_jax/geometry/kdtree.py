@@ -222,7 +222,13 @@ class KDTree:
             the box centre, nearest first (equidistant points in any order), sentinel ``capacity``;
             row ``g - first_candidate_node``.
         spacing: ``[]`` mean nearest-neighbour distance of the alive points (the length unit).
-        depth, capacity, num_render_levels: static ints.
+        frame_rot, frame_shift: ``[2**frame_level, 3, 3]`` / ``[2**frame_level, 3]`` or ``None``.
+            A tree carried through an edit (:func:`~ne_jax.geometry.carry.carry_tree`) keeps its
+            boxes in the frame its points had when it was built: the subtree under node ``i`` of
+            ``frame_level`` maps world positions to that frame by ``x -> frame_rot[i] @ x +
+            frame_shift[i]``, and its boxes are tested there (nodes above ``frame_level`` have world
+            boxes). ``None``: every box is in world coordinates (a built tree), nothing extra traced.
+        depth, capacity, num_render_levels, frame_level: static ints (``frame_level`` -1 without frames).
     """
 
     lo: jax.Array
@@ -237,6 +243,14 @@ class KDTree:
     depth: int = struct.field(pytree_node=False)
     capacity: int = struct.field(pytree_node=False)
     num_render_levels: int = struct.field(pytree_node=False)
+    frame_rot: jax.Array | None = None
+    frame_shift: jax.Array | None = None
+    frame_level: int = struct.field(pytree_node=False, default=-1)
+
+    @property
+    def has_frames(self) -> bool:
+        """Whether some boxes live in a carried frame (see ``frame_rot``)."""
+        return self.frame_rot is not None
 
     @property
     def num_slots(self) -> int:
@@ -414,6 +428,30 @@ def _split_levels(x: np.ndarray, depth: int):
     counts.append(cnt)
     return axes, values, leaf, (los, his, counts)
 
+def _cell_boxes(cfg: KDTreeConfig, axes, values, bb_lo, bb_hi, count, depth: int, margin0: float):
+    """Per level ``0 .. depth`` the boxes ``(lo, hi)`` of :func:`_split_levels`' output: top-down
+    partition cells intersected with the points' bounding boxes grown by the level's margin
+    (zeros for empty nodes). A subtree split on its own gives its part of the whole tree's boxes:
+    margins depend on the slots per node only."""
+    part_lo = np.full((1, 3), -np.inf)
+    part_hi = np.full((1, 3), np.inf)
+    lo_levels, hi_levels = [], []
+    for level in range(depth + 1):
+        m = margin0 * _level_margin_growth(cfg, 2 ** (depth - level))
+        nonempty = (count[level] > 0)[:, None]  # empty: NaN point boxes
+        lo_levels.append(np.where(nonempty, np.maximum(part_lo, bb_lo[level] - m), 0.0))
+        hi_levels.append(np.where(nonempty, np.minimum(part_hi, bb_hi[level] + m), 0.0))
+        if level == depth:
+            break
+        ax, sv = axes[level], values[level]
+        onehot = np.arange(3)[None, :] == ax[:, None]
+        l_hi = np.where(onehot, np.minimum(part_hi, sv[:, None]), part_hi)
+        r_lo = np.where(onehot, np.maximum(part_lo, sv[:, None]), part_lo)
+        part_lo = np.stack([part_lo, r_lo], axis=1).reshape(-1, 3)
+        part_hi = np.stack([l_hi, part_hi], axis=1).reshape(-1, 3)
+    return lo_levels, hi_levels
+
+
 # Superset widths of the candidate cascade, in units of ``num_candidates``, indexed from the bottom
 # candidate level up (the bottom level keeps only its own candidates). Wider sets mean more distance
 # work per node and fewer fallback queries; these were tuned on surface clouds (1e5..2e6 points,
@@ -566,26 +604,8 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     spacing, lim = _spacing_and_limit(x, kd, cfg)
     lap("index")
 
-    # Top-down partition cells, intersected with the grown bounding boxes.
     margin0 = cfg.margin_factor * spacing / math.sqrt(3.0)
-    part_lo = np.full((1, 3), -np.inf)
-    part_hi = np.full((1, 3), np.inf)
-    lo_levels, hi_levels = [], []
-    for level in range(depth + 1):
-        m = margin0 * _level_margin_growth(cfg, 2 ** (depth - level))
-        nonempty = (count[level] > 0)[:, None]  # empty: NaN point boxes
-        lo = np.where(nonempty, np.maximum(part_lo, bb_lo[level] - m), 0.0)
-        hi = np.where(nonempty, np.minimum(part_hi, bb_hi[level] + m), 0.0)
-        lo_levels.append(lo)
-        hi_levels.append(hi)
-        if level == depth:
-            break
-        ax, sv = axes[level], values[level]
-        onehot = np.arange(3)[None, :] == ax[:, None]
-        l_hi = np.where(onehot, np.minimum(part_hi, sv[:, None]), part_hi)
-        r_lo = np.where(onehot, np.maximum(part_lo, sv[:, None]), part_lo)
-        part_lo = np.stack([part_lo, r_lo], axis=1).reshape(-1, 3)
-        part_hi = np.stack([l_hi, part_hi], axis=1).reshape(-1, 3)
+    lo_levels, hi_levels = _cell_boxes(cfg, axes, values, bb_lo, bb_hi, count, depth, margin0)
     lo_all = np.concatenate(lo_levels).astype(dtype)
     hi_all = np.concatenate(hi_levels).astype(dtype)
     count_all = np.concatenate(count).astype(np.int32)

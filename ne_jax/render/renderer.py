@@ -58,6 +58,7 @@ from tqdm.auto import tqdm
 from ne_jax.checks import stage_check, throw
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.devices import default_mesh, padded_size, shard_rays
+from ne_jax.geometry.carry import carry_tree
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
 from ne_jax.geometry.knn import knn_integrate, knn_interpolate
@@ -165,15 +166,42 @@ class RenderConfig:
 
 @struct.dataclass
 class PointScene:
-    """What a model renders: the point state and the K-D tree built over its alive points."""
+    """What a model renders: the point state and the K-D tree over its alive points.
+
+    The tree is built on the points (:meth:`build`), or carried through an edit (:meth:`edited`):
+    then ``rest_xyz [C, 3]`` / ``rest_alive [C]`` are the positions and mask it was built on, from
+    which a later edit carries it again (nothing in a render reads them)."""
 
     points: PointState
     tree: KDTree
+    rest_xyz: jax.Array | None = None
+    rest_alive: jax.Array | None = None
 
     @classmethod
     def build(cls, points: PointState, cfg: RenderConfig) -> "PointScene":
         """Build the tree of ``points`` (host side) for rendering with ``cfg``."""
         return cls(points=points, tree=build_tree(np.asarray(points.xyz), np.asarray(points.alive), cfg.tree))
+
+    @classmethod
+    def carried(cls, rest_xyz, rest_alive, points: PointState, cfg: RenderConfig, **carry) -> "PointScene":
+        """The scene of ``points`` with the tree built on ``rest_xyz``/``rest_alive`` carried to them
+        (:func:`~ne_jax.geometry.carry.carry_tree`; ``carry``: its keyword arguments)."""
+        rest_xyz, rest_alive = np.asarray(rest_xyz), np.asarray(rest_alive)
+        tree = carry_tree(build_tree(rest_xyz, rest_alive, cfg.tree), rest_xyz, np.asarray(points.xyz),
+                          np.asarray(points.alive), cfg.tree, **carry)
+        return cls(points=points, tree=tree, rest_xyz=jnp.asarray(rest_xyz), rest_alive=jnp.asarray(rest_alive))
+
+    def edited(self, points: PointState, cfg: RenderConfig, carry: bool = True, **carry_kw) -> "PointScene":
+        """The scene of ``points``, an edit of this scene's points (same capacity and indices): the
+        tree carried from where it was built (``carry``; see :mod:`ne_jax.geometry.carry`), or
+        rebuilt on the edited cloud (the paper's behaviour)."""
+        if not carry:
+            return PointScene.build(points, cfg)
+        if self.rest_xyz is None:  # a built tree: this scene's points are its rest
+            tree = carry_tree(self.tree, np.asarray(self.points.xyz), np.asarray(points.xyz),
+                              np.asarray(points.alive), cfg.tree, **carry_kw)
+            return PointScene(points=points, tree=tree, rest_xyz=self.points.xyz, rest_alive=self.points.alive)
+        return PointScene.carried(self.rest_xyz, self.rest_alive, points, cfg, **carry_kw)
 
 
 @struct.dataclass

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import io
 import json
 import math
 import shutil
@@ -33,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from ne_jax.atomic import atomic_directory, atomic_write_text
+from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ne_jax.data.nerf_synthetic import SceneSplit, load_split
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTreeConfig
@@ -60,6 +61,30 @@ INIT_SOURCES = ("carving", "ply", "ground_truth")
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 CHECKPOINT_DIR = "checkpoints"
+REST_FILE = "tree_rest.npz"
+"""In a run directory whose K-D tree is carried through an edit: the positions and mask the tree was
+built on (``xyz``, ``alive``), from which :func:`load_trained` carries it again."""
+
+
+def _write_rest(run_dir: Path, scene: PointScene) -> None:
+    """Record where ``scene``'s tree was built (a carried tree only; otherwise remove the record)."""
+    path = Path(run_dir) / REST_FILE
+    if scene.rest_xyz is None:
+        path.unlink(missing_ok=True)
+        return
+    buf = io.BytesIO()
+    np.savez(buf, xyz=np.asarray(scene.rest_xyz), alive=np.asarray(scene.rest_alive))
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _scene_of(points: PointState, render: RenderConfig, run_dir: Path) -> PointScene:
+    """The scene of ``points``: the tree carried from the run directory's rest record when it has one
+    (an edited model), else built."""
+    path = Path(run_dir) / REST_FILE
+    if not path.is_file():
+        return PointScene.build(points, render)
+    with np.load(path) as rest:
+        return PointScene.carried(rest["xyz"], rest["alive"], points, render)
 
 # The jitted step per (train config, packing budget), shared by the train() calls of one process: a
 # second run of the same configs (a notebook cell run again, a resume) compiles nothing new.
@@ -262,6 +287,9 @@ class StartFrom:
     params: dict
     points: PointState
     note: dict
+    scene: PointScene | None = None
+    """The model's scene, when its tree is carried through an edit (kept until a point-cloud round
+    rebuilds it); ``None``: the tree is built on ``points``."""
 
 
 class TrainingDiverged(RuntimeError):
@@ -381,7 +409,12 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
             log("note: the initial cloud is the benchmark's ground-truth surface samples (as asked); "
                 "results of this run are labelled 'initial cloud: ground truth'")
         state = init_train_state(run.train, run.render, points, k_model)
-    scene = PointScene.build(points, run.render)
+    if latest is None:
+        carried = start is not None and start.scene is not None
+        scene = start.scene.replace(points=points) if carried else PointScene.build(points, run.render)
+        _write_rest(run_dir, scene)
+    else:
+        scene = _scene_of(points, run.render, run_dir)
     budget = extra.get("segments_per_ray") if latest is not None else None
     render = run.render if budget is None else run.render.replace(segments_per_ray=budget)
     step_fns: dict = {}  # one compiled step per packing budget
@@ -433,6 +466,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                 reset = _changed_slots(trained.points, new_points)
                 state = state.with_points(new_points, reset)
                 scene = PointScene.build(new_points, run.render)
+                _write_rest(run_dir, scene)  # before the checkpoint: a resume never carries a rebuilt cloud
                 report["seconds"] = round(time.perf_counter() - t1, 2)
                 record["points"] = report
             render = fit(render, scene, epoch)
@@ -465,7 +499,7 @@ class TrainedModel:
 
 def load_trained(run_dir: str | Path) -> TrainedModel:
     """The latest checkpoint of a run directory written by :func:`train`, with its config and the
-    K-D tree rebuilt. ``scene_dir`` is the training scene recorded in ``metrics.json`` (``None`` if
+    K-D tree rebuilt (or carried, for an edited model: :data:`REST_FILE`). ``scene_dir`` is the training scene recorded in ``metrics.json`` (``None`` if
     absent). Raises ``FileNotFoundError`` / :class:`CheckpointError` naming what is missing or wrong."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -477,7 +511,7 @@ def load_trained(run_dir: str | Path) -> TrainedModel:
     if metrics.is_file():
         recorded = json.loads(metrics.read_text(encoding="utf-8")).get("scene_dir")
         scene_dir = Path(recorded) if recorded else None
-    return TrainedModel(run=run, state=state, scene=PointScene.build(points, run.render), scene_dir=scene_dir,
+    return TrainedModel(run=run, state=state, scene=_scene_of(points, run.render, run_dir), scene_dir=scene_dir,
                         meta=meta)
 
 
@@ -494,6 +528,7 @@ def save_trained(model: TrainedModel, run_dir: str | Path, metrics: dict | None 
         atomic_write_text(tmp / METRICS_FILE, json.dumps(_json_safe(metrics), indent=2, allow_nan=False) + "\n")
         save_checkpoint(tmp / CHECKPOINT_DIR, model.state, points, model.run.train, model.run.render,
                         extra=extra, keep=1)
+        _write_rest(tmp, model.scene)
     return Path(run_dir)
 
 

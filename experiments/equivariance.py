@@ -1,0 +1,193 @@
+"""Equivariance of edits: a trained model moved rigidly must render as the original seen from moved
+cameras (:mod:`ne_jax.edit.fidelity`). Two tables per model:
+
+* **motions**: rotations about three axes (two tilted) at several angles, a translation, and a
+  uniform scaling (reported apart: the density's length unit does not scale with it), each edited
+  with the tree carried through the edit (``EditConfig(tree="carry")``, the default) and rebuilt
+  (``tree="rebuild"``, the paper); PSNR between the edited render from moved test cameras and the
+  unedited render;
+* **diagnosis** (``--diagnose``): one rotation edited with one stage of the pipeline held at its
+  exact value, or switched, at a time: the tree (rebuilt, its spacing kept; the partition kept with
+  re-fitted world boxes and re-chosen candidate sets; with kept candidate sets; boxes carried in their
+  frames), the exact KNN instead of candidate sets, normals and ISTs (re-estimated, or moved exactly),
+  the IST's filling and smoothing, and the IST effect off.
+
+    python experiments/equivariance.py --runs RUN [RUN ...] [--views 4] [--diagnose] [--out NAME]
+
+Writes ``experiments/results/<NAME>.json`` and ``.md`` (default ``equivariance``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ne_jax.atomic import atomic_write_json, atomic_write_text
+from ne_jax.data.nerf_synthetic import load_split
+from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
+from ne_jax.edit.deformations import Edit, rigid_motion, rigid_scene
+from ne_jax.edit.fidelity import equivariance, exact_rigid_points
+from ne_jax.edit.ist import ISTConfig
+from ne_jax.render.renderer import PointScene
+from ne_jax.train.loop import load_trained
+
+RESULTS = Path(__file__).resolve().parent / "results"
+AXES = {"tilted_a": (1.0, 1.0, 2.0), "tilted_b": (2.0, -1.0, 0.5), "z": (0.0, 0.0, 1.0)}
+ANGLES = (2.0, 10.0, 40.0, 90.0, 180.0)
+DIAGNOSE = ("tilted_a", 40.0)
+
+
+def motions(pivot) -> list[tuple[str, Edit, str]]:
+    """``(label, edit, kind)`` with kind ``rigid`` or ``scale``."""
+    out = [(f"rotate {a:g} deg about {name}", rigid_scene(f"rot_{name}_{a:g}", axis, a, pivot), "rigid")
+           for name, axis in AXES.items() for a in ANGLES]
+    out.append(("translate by (0.013, -0.021, 0.008)",
+                rigid_scene("translate", (0, 0, 1), 0.0, pivot, (0.013, -0.021, 0.008)), "rigid"))
+    s = 1.1
+    t = np.asarray(pivot, np.float64) * (1 - s)
+    m = np.eye(4)
+    m[:3, :3] *= s
+    m[:3, 3] = t
+    scale = Edit("scale_1.1", "scale", lambda p: s * p + t.astype(np.float32),
+                 rigid=tuple(tuple(float(x) for x in row) for row in m))
+    out.append(("scale by 1.1 about the centre", scale, "scale"))
+    return out
+
+
+def _model_setup(run_dir: Path, views: int):
+    model = load_trained(run_dir)
+    split = load_split(model.scene_dir, "test")
+    cameras = split.cameras()[:views]
+    pts = model.state.point_state(model.scene.points)
+    alive = np.asarray(pts.alive)
+    xyz = np.asarray(pts.xyz)[alive]
+    pivot = tuple(float(v) for v in 0.5 * (xyz.min(axis=0) + xyz.max(axis=0)))
+    return model, cameras, pts, pivot
+
+
+def measure_motions(model, cameras, pts, pivot, log) -> tuple[list[dict], np.ndarray]:
+    run = model.run
+    near, far = run.sampler.near, run.sampler.far
+    ref = None
+    rows = []
+    for label, edit, kind in motions(pivot):
+        row = {"motion": label, "kind": kind}
+        for tree in ("carry", "rebuild"):
+            cfg = EditConfig(tree=tree)
+            t0 = time.perf_counter()
+            points = apply_edit(pts, edit, cfg)
+            render = edited_render_config(run.render, ist=True)
+            scene = cfg.scene(model.scene, points, render)
+            res = equivariance(run.render, model.state.params, model.scene, render, scene, edit.matrix, cameras,
+                               run.background, near, far, reference=ref)
+            ref = res["reference"]
+            row[tree] = round(res["psnr"], 2)
+            row[f"{tree}_seconds"] = round(time.perf_counter() - t0, 1)
+        rows.append(row)
+        log(f"  {label:>40}: carried {row['carry']:7.2f} dB, rebuilt {row['rebuild']:7.2f} dB")
+    return rows, ref
+
+
+def diagnose(model, cameras, pts, pivot, ref, log) -> list[dict]:
+    """One rotation, one stage at a time (module docstring)."""
+    run = model.run
+    near, far = run.sampler.near, run.sampler.far
+    name, angle = DIAGNOSE
+    edit = rigid_scene("diagnose", AXES[name], angle, pivot)
+    render = edited_render_config(run.render, ist=True)
+    fitted = apply_edit(pts, edit)  # normals re-estimated, ISTs fitted (the default edit path)
+    exact = exact_rigid_points(pts, edit.matrix)
+    no_fill = apply_edit(pts, edit, EditConfig(ist=ISTConfig(fill_passes=0, smooth_iters=0)))
+    base = model.scene
+    rebuilt = PointScene.build(fitted, render)
+    stages = [
+        ("tree rebuilt (paper)", "rebuild", render, rebuilt),
+        ("tree rebuilt, spacing kept", "rebuild", render,
+         rebuilt.replace(tree=rebuilt.tree.replace(spacing=base.tree.spacing))),
+        ("tree rebuilt, normals and ISTs exact", "rebuild", render, PointScene.build(exact, render)),
+        ("partition kept; world boxes re-fitted, candidate sets re-chosen", "carry", render,
+         base.edited(fitted, render, oriented=False, recompute_candidates=True)),
+        ("partition and candidate sets kept; world boxes re-fitted", "carry", render,
+         base.edited(fitted, render, oriented=False)),
+        ("tree carried: boxes in their frames (default)", "carry", render, base.edited(fitted, render)),
+        ("tree carried, normals and ISTs exact", "carry", render, base.edited(exact, render)),
+        ("tree carried, IST without filling and smoothing", "carry", render, base.edited(no_fill, render)),
+        ("tree carried, IST effect off", "carry", edited_render_config(run.render, ist=False),
+         base.edited(fitted, render)),
+    ]
+    rows = []
+    for label, tree, cfg, scene in stages:
+        res = equivariance(run.render, model.state.params, base, cfg, scene, edit.matrix, cameras, run.background,
+                           near, far, reference=ref)
+        rows.append({"stage": label, "tree": tree, "psnr": round(res["psnr"], 2)})
+        log(f"  {label:>66}: {res['psnr']:7.2f} dB")
+    # exact KNN on both sides: what the candidate sets' approximation costs under a rebuild
+    ex = dataclasses.replace(run.render, exact_knn=True)
+    ex_edit = dataclasses.replace(render, exact_knn=True)
+    res = equivariance(ex, model.state.params, base, ex_edit, rebuilt, edit.matrix, cameras, run.background, near, far)
+    rows.append({"stage": "tree rebuilt, exact KNN on both sides", "tree": "rebuild", "psnr": round(res["psnr"], 2)})
+    log(f"  {'tree rebuilt, exact KNN on both sides':>66}: {res['psnr']:7.2f} dB")
+    return rows
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def write(out: str, results: list[dict], command: str) -> None:
+    RESULTS.mkdir(exist_ok=True)
+    atomic_write_json(RESULTS / f"{out}.json", {"commit": _commit(), "command": command, "models": results})
+    lines = [f"Equivariance of edits: PSNR (dB) between the edited model seen from moved test cameras and the "
+             f"unedited model ({_commit()}; re-run: `{command}`). 120 = identical renders.", ""]
+    for res in results:
+        lines += [f"**{res['run']}** (preset `{res['preset']}`, {res['views']} test views, {res['points']} points)", "",
+                  "| motion | tree carried | tree rebuilt (paper) |", "|---|---:|---:|"]
+        lines += [f"| {r['motion']} | {r['carry']:.2f} | {r['rebuild']:.2f} |" for r in res["motions"]]
+        rigid = [r for r in res["motions"] if r["kind"] == "rigid"]
+        lines += [f"| worst rigid motion | {min(r['carry'] for r in rigid):.2f} | {min(r['rebuild'] for r in rigid):.2f} |",
+                  ""]
+        if res.get("diagnosis"):
+            name, angle = DIAGNOSE
+            lines += [f"Diagnosis: rotation by {angle:g} deg about {name} {AXES[name]}, one stage at a time.", "",
+                      "| stage | PSNR |", "|---|---:|"]
+            lines += [f"| {r['stage']} | {r['psnr']:.2f} |" for r in res["diagnosis"]]
+            lines.append("")
+    atomic_write_text(RESULTS / f"{out}.md", "\n".join(lines))
+    print("\n".join(lines))
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", nargs="+", required=True, help="trained run directories")
+    parser.add_argument("--views", type=int, default=8, help="test views per model (the first ones)")
+    parser.add_argument("--diagnose", action="store_true", help="also the stage-by-stage diagnosis")
+    parser.add_argument("--out", default="equivariance", help="results file stem")
+    args = parser.parse_args(argv)
+    command = ("python experiments/equivariance.py --runs " + " ".join(Path(r).name for r in args.runs)
+               + f" --views {args.views}" + (" --diagnose" if args.diagnose else "") + f" --out {args.out}")
+    results = []
+    for run_dir in args.runs:
+        t0 = time.perf_counter()
+        model, cameras, pts, pivot = _model_setup(Path(run_dir), args.views)
+        print(f"== {run_dir} ({model.run.name})", flush=True)
+        rows, ref = measure_motions(model, cameras, pts, pivot, lambda s: print(s, flush=True))
+        res = {"run": Path(run_dir).name, "preset": model.run.name, "views": len(cameras),
+               "points": int(np.asarray(pts.alive).sum()), "scene_dir": str(model.scene_dir), "motions": rows}
+        if args.diagnose:
+            res["diagnosis"] = diagnose(model, cameras, pts, pivot, ref, lambda s: print(s, flush=True))
+        res["seconds"] = round(time.perf_counter() - t0, 1)
+        results.append(res)
+        write(args.out, results, command)
+
+
+if __name__ == "__main__":
+    main()
