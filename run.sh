@@ -3,7 +3,8 @@
 #   bash run.sh demo [flags]   the main job on the built-in default scene (see `ne-jax demo --help`)
 #   bash run.sh test [flags]   the test suite (flags go to pytest; NE_JAX_TEST_WORKERS=2 pytest-xdist
 #                              processes, one test file per worker at a time: one XLA:CPU program
-#                              does not fill two cores; 1 runs in-process), then, as a second process, the
+#                              does not fill two cores; 1 runs in-process; each on one host device,
+#                              NE_JAX_HOST_DEVICES=1 from tests/conftest.py), then, as a second process, the
 #                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
 #                              the sharding tests on 4 forced host devices (pytest -m multidevice tests/devices),
 #                              then the notebooks in their fast mode (pytest -m notebook tests/notebooks);
