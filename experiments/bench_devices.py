@@ -172,9 +172,10 @@ def main(argv=None) -> None:
         r["render_speedup"] = round(one["render_s"] / r["render_s"], 2)
     command = "python experiments/bench_devices.py " + " ".join(
         f"--{k} {v}" for k, v in vars(args).items() if k != "worker")
-    dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
+    modified = [line[3:] for line in _git("status", "--porcelain", "--untracked-files=no").splitlines() if line.strip()]
+    dirty = bool(modified)
     report = {"what": "tiny training step and test-image render: 1 host device vs one per core (import ne_jax's default)",
-              "commit": _git("rev-parse", "HEAD"), "worktree_modified": dirty, "command": command,
+              "commit": _git("rev-parse", "HEAD"), "worktree_modified": modified, "command": command,
               "seconds": round(time.perf_counter() - t_start, 1), "rows": rows,
               "machine": {"usable_cores": cores, "cpu_count": os.cpu_count(), "platform": platform.platform(),
                           "python": platform.python_version()},
@@ -185,7 +186,8 @@ def main(argv=None) -> None:
     atomic_write_json(RESULTS / "bench_devices.json", report)
     lines = [f"`tiny` preset, 1 host device against one per core ({cores} usable cores, {rows[0]['platform']}): "
              f"training step of {rows[0]['train_batch']} rays and a {args.res} x {args.res} test-image render. "
-             f"Commit {report['commit'][:12]}{' (work tree modified)' if dirty else ''}; re-run: `{command}`. "
+             f"Commit {report['commit'][:12]}{' (work tree modified: ' + ', '.join(modified) + ')' if dirty else ''}; "
+             f"re-run: `{command}`. "
              f"Other jobs shared the cores (load: the 1-minute load average before each process).", "",
              "| round | setting | devices | load | train s/step | vs 1 | train CPU/wall | render s | vs 1 | "
              "render CPU/wall | threads | compile step / render (s) |",
