@@ -35,6 +35,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
+from ne_jax.compiles import count_compiles
 from ne_jax.data.nerf_synthetic import SceneSplit, load_split
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTreeConfig
@@ -435,19 +436,20 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
             if render not in step_fns:
                 step_fns[render] = _train_step(run.train, render)
             step_fn = step_fns[render]
-            compiles_before = step_fn._cache_size()
             metrics = []
             step0 = (epoch - 1) * run.steps_per_epoch
-            for i in range(step0, step0 + run.steps_per_epoch):
-                batch = sample_batch(sampler, pool, jax.random.fold_in(k_batch, i))
-                state, m = step_fn(state, scene, batch)
-                metrics.append(m)
-                if (i + 1) % run.log_every == 0 or i + 1 == step0 + run.steps_per_epoch:
-                    last = jax.device_get({"loss": m["loss/total"], "psnr": m["psnr"]})
-                    bar.set_postfix(epoch=epoch, loss=f"{float(last['loss']):.4f}", psnr=f"{float(last['psnr']):.1f}")
-                bar.update(1)
+            with count_compiles() as compiles:  # the step's (its batches' sampler compiled in fit())
+                for i in range(step0, step0 + run.steps_per_epoch):
+                    batch = sample_batch(sampler, pool, jax.random.fold_in(k_batch, i))
+                    state, m = step_fn(state, scene, batch)
+                    metrics.append(m)
+                    if (i + 1) % run.log_every == 0 or i + 1 == step0 + run.steps_per_epoch:
+                        last = jax.device_get({"loss": m["loss/total"], "psnr": m["psnr"]})
+                        bar.set_postfix(epoch=epoch, loss=f"{float(last['loss']):.4f}",
+                                        psnr=f"{float(last['psnr']):.1f}")
+                    bar.update(1)
             record = {"epoch": epoch, "step": int(state.step), **_epoch_summary(metrics),
-                      "compiles": step_fn._cache_size() - compiles_before}
+                      "compiles": compiles.count}
             if record["skipped"] == record["steps"]:
                 raise TrainingDiverged(
                     f"epoch {epoch}: all {record['steps']} steps were refused because of non-finite values "
