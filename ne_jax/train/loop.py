@@ -118,7 +118,13 @@ class InitConfig:
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Everything a training run needs (hashable, saved as ``config.json``). Presets :meth:`tiny`,
-    :meth:`default`, :meth:`paper`; change a preset with :meth:`replace` / :meth:`with_schedule`."""
+    :meth:`default`, :meth:`paper`; change a preset with :meth:`replace` / :meth:`with_schedule`.
+
+    The learning-rate schedule (``train.total_steps``) of a preset spans the run
+    (``epochs * steps_per_epoch``), and keeps spanning it however the length is changed: the preset's
+    keyword arguments, :meth:`replace` and :meth:`with_schedule` all re-fit it. A schedule of another
+    length is kept only when asked for: ``replace(train=...)`` with another ``total_steps``, or a
+    config built with one (``RunConfig(...)`` without :meth:`with_schedule`)."""
 
     name: str = "default"
     """Preset name (informational)."""
@@ -148,17 +154,32 @@ class RunConfig:
             raise ValueError(f"RunConfig.point_rounds: expected (first, last) with 1 <= first <= last + 1, found {self.point_rounds}")
 
     def replace(self, **changes) -> "RunConfig":
-        return dataclasses.replace(self, **changes)
+        """This config with ``changes``; a schedule that spans the run (:attr:`schedule_spans_run`)
+        is re-fitted to a new ``epochs`` / ``steps_per_epoch``, unless ``changes`` give a ``train``
+        with another ``total_steps`` (then that one is kept)."""
+        new = dataclasses.replace(self, **changes)
+        explicit = "train" in changes and changes["train"].total_steps != self.train.total_steps
+        if self.schedule_spans_run and not explicit and not new.schedule_spans_run:
+            new = dataclasses.replace(new, train=new.train.replace(total_steps=new.total_steps))
+        return new
 
     def with_schedule(self, epochs: int | None = None, steps_per_epoch: int | None = None) -> "RunConfig":
-        """Change the length of the run; the cosine decay spans the new length."""
+        """Change the length of the run (``None``: keep); the cosine decay spans the new length
+        (also when it did not span the old one)."""
         epochs = self.epochs if epochs is None else int(epochs)
         steps = self.steps_per_epoch if steps_per_epoch is None else int(steps_per_epoch)
-        return self.replace(epochs=epochs, steps_per_epoch=steps, train=self.train.replace(total_steps=epochs * steps))
+        return dataclasses.replace(self, epochs=epochs, steps_per_epoch=steps,
+                                   train=self.train.replace(total_steps=epochs * steps))
 
     @property
     def total_steps(self) -> int:
+        """Steps of the whole run: ``epochs * steps_per_epoch``."""
         return self.epochs * self.steps_per_epoch
+
+    @property
+    def schedule_spans_run(self) -> bool:
+        """Whether the learning-rate schedule decays over exactly the run's :attr:`total_steps`."""
+        return int(self.train.total_steps) == self.total_steps
 
     def optimises_points_after(self, epoch: int) -> bool:
         """Whether a point-cloud round follows epoch ``epoch`` (1-based); never after the last."""

@@ -1,0 +1,81 @@
+"""RunConfig presets: the serialised presets are pinned (cached runs are matched by their JSON and
+keys), and the learning-rate schedule spans the run however its length is set."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from ne_jax.cli import build_parser
+from ne_jax.train.checkpoint import config_key, config_to_json
+from ne_jax.train.loop import PRESETS, RunConfig
+from ne_jax.train.state import TrainConfig
+
+GOLDEN = Path(__file__).parent / "golden"
+"""``<preset>.config.json``: each preset's ``config.json`` as ``train`` writes it; ``keys.json``: their
+:func:`config_key` (as recorded in ``experiments/results``)."""
+
+
+@pytest.mark.parametrize("name", ["tiny", "default", "paper"])
+def test_the_presets_serialise_byte_for_byte_as_pinned(name):
+    cfg = PRESETS[name]()
+    text = json.dumps(config_to_json(cfg), indent=2) + "\n"
+    assert text == (GOLDEN / f"{name}.config.json").read_text(encoding="utf-8")
+    assert config_key(cfg) == json.loads((GOLDEN / "keys.json").read_text())[name]
+    assert cfg.schedule_spans_run and cfg.train.total_steps == cfg.total_steps
+
+
+def _spans(run: RunConfig, epochs: int, steps: int) -> None:
+    assert (run.epochs, run.steps_per_epoch) == (epochs, steps)
+    assert run.train.total_steps == run.total_steps == epochs * steps
+    lr = run.train.schedule()
+    floor = run.train.lr * run.train.lr_final_fraction
+    assert float(lr(run.total_steps - 1)) > floor  # still decaying on the last step
+    assert float(lr(run.total_steps)) == pytest.approx(floor)
+
+
+@pytest.mark.parametrize("preset", ["tiny", "default", "paper"])
+def test_preset_keyword_arguments_refit_the_schedule(preset):
+    make = getattr(RunConfig, preset)
+    base = make()
+    _spans(make(epochs=10), 10, base.steps_per_epoch)
+    _spans(make(steps_per_epoch=7), base.epochs, 7)
+    _spans(make(epochs=2, steps_per_epoch=3, seed=4), 2, 3)
+
+
+def test_replace_refits_a_schedule_that_spans_the_run():
+    tiny = RunConfig.tiny()
+    _spans(tiny.replace(epochs=10), 10, 125)
+    _spans(tiny.replace(steps_per_epoch=40).replace(epochs=3), 3, 40)
+    _spans(tiny.replace(epochs=4, train=tiny.train.replace(lr=1e-3)), 4, 125)  # same total_steps: follows
+    assert tiny.replace(epochs=10).train.lr == tiny.train.lr
+    assert tiny.replace(seed=3).train == tiny.train  # other changes leave the schedule alone
+
+
+def test_with_schedule_sets_the_length_and_fits_the_schedule():
+    _spans(RunConfig.tiny().with_schedule(epochs=3), 3, 125)
+    _spans(RunConfig.default().with_schedule(steps_per_epoch=20), 12, 20)
+    built = RunConfig(epochs=2, steps_per_epoch=5)  # a hand-built config keeps its TrainConfig's schedule
+    assert built.train.total_steps == TrainConfig().total_steps and not built.schedule_spans_run
+    _spans(built.with_schedule(), 2, 5)
+
+
+def test_an_explicit_schedule_length_is_kept():
+    run = RunConfig.tiny(epochs=10, train=TrainConfig(lr=5e-3, total_steps=300))
+    assert run.train.total_steps == 300 and run.total_steps == 1250 and not run.schedule_spans_run
+    assert run.replace(epochs=2).train.total_steps == 300  # once apart, replace keeps it apart
+    _spans(run.with_schedule(), 10, 125)
+
+
+@pytest.mark.parametrize("argv, epochs, steps", [
+    (["--epochs", "10"], 10, 125),
+    (["--steps-per-epoch", "9"], 6, 9),
+    (["--epochs", "2", "--steps-per-epoch", "9"], 2, 9),
+])
+def test_the_cli_length_options_fit_the_schedule(argv, epochs, steps):
+    from ne_jax.cli import _run_config
+
+    args = build_parser().parse_args(["train", "scene", "--out", "run", "--preset", "tiny", *argv])
+    _spans(_run_config(args), epochs, steps)
