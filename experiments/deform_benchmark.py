@@ -22,6 +22,7 @@ import io
 import json
 import os
 import platform
+import subprocess
 import time
 from pathlib import Path
 
@@ -45,8 +46,9 @@ def score(model: TrainedModel, variant, scene_dir: Path) -> tuple[dict, np.ndarr
     run = model.run
     report, images = evaluate_split(run.render, model.state.params, model.scene, split, run.background,
                                     run.sampler.near, run.sampler.far, progress=False, image_fn=variant.image_fn())
+    lp = report.get("lpips")
     return {"psnr": round(report["psnr"], 2), "ssim": round(report["ssim"], 4),
-            "lost_segments": report["lost_segments"]}, images[0]
+            "lpips": None if lp is None else round(lp, 4), "lost_segments": report["lost_segments"]}, images[0]
 
 
 def trained_model(run, scene_dir: Path, run_dir: Path, log) -> TrainedModel:
@@ -80,7 +82,7 @@ def main(argv=None) -> None:
     complete = set(MAIN_VARIANTS) <= set(names) and set(args.scenes) == set(SCENES) and args.edits is None
     tag = ("_all" if len(names) > len(MAIN_VARIANTS) else "") if complete else "_partial"
     out_name = f"deform_benchmark_{args.preset}{tag}"
-    records, figure = [], {}
+    records, figure, unedited_models = [], {}, {}
     t_start = time.perf_counter()
     ft_tag = "zero" if args.no_finetune else f"ft{args.finetune_epochs}x{args.finetune_steps or full.steps_per_epoch}"
     for scene in args.scenes:
@@ -94,6 +96,14 @@ def main(argv=None) -> None:
                 models[run.name] = trained_model(run, scene_dir, runs / scene / "models" / run.name, print)
             return models[run.name]
 
+        own = runs / scene / "records" / f"unedited-{full.name}.json"
+        if own.is_file():
+            unedited = json.loads(own.read_text(encoding="utf-8"))
+        else:  # the full model on its own test views: what a faithful zero-shot edit can reach
+            unedited = {"scene": scene, **score(model_of(get_variant("full")), get_variant("full"), scene_dir)[0]}
+            own.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_json(own, unedited)
+        unedited_models[scene] = unedited
         edits = [e for e in get_scene(scene).edits if args.edits is None or e in args.edits]
         for edit in edits:
             truth = scene_dir / "edits" / edit
@@ -115,7 +125,7 @@ def main(argv=None) -> None:
                 ft = rec.get("finetune", {}).get("psnr", float("nan"))
                 print(f"  {edit:>12} {v.name:>22}: zero-shot {rec['zero_shot']['psnr']:.2f} dB, "
                       f"fine-tuned {ft:.2f} dB", flush=True)
-            write_results(out_name, args, full, records, variants, time.perf_counter() - t_start)
+            write_results(out_name, args, full, records, variants, time.perf_counter() - t_start, unedited_models)
             write_figure(out_name, figure, variants)
     print((RESULTS / f"{out_name}.md").read_text())
 
@@ -140,7 +150,7 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
         key = (model.run.name, v.ist, v.edit)  # Naive Plotting plots the fine-tuned model without IST
         t0 = time.perf_counter()
         if key not in finetuned:
-            kept = "" if v.edit.reestimate_normals else "-keptnormals"
+            kept = ("" if v.edit.reestimate_normals else "-keptnormals") + ("-rebuilt" if v.edit.tree == "rebuild" else "")
             ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}{kept}"
             result = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
                               progress=False, log=lambda s: None)
@@ -151,7 +161,7 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
     return rec, image
 
 
-def write_results(out_name: str, args, full, records: list, variants, seconds: float) -> None:
+def write_results(out_name: str, args, full, records: list, variants, seconds: float, unedited: dict) -> None:
     report = {
         "what": "edit each scene's trained models by every benchmark edit; PSNR/SSIM of the edited test views "
                 "zero-shot and after fine-tuning on the edited scene's training views",
@@ -159,6 +169,7 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
         "finetune_steps_per_epoch": args.finetune_steps or full.steps_per_epoch,
         "training": {"epochs": full.epochs, "steps_per_epoch": full.steps_per_epoch, "batch_size": full.sampler.batch_size},
         "background": full.background, "seconds": round(seconds, 1), "records": records,
+        "unedited": unedited, "commit": _commit(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "command": "python experiments/deform_benchmark.py " + " ".join(
             f"--{k.replace('_', '-')} {' '.join(v) if isinstance(v, list) else v}" for k, v in vars(args).items()
@@ -168,21 +179,44 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
     atomic_write_json(RESULTS / f"{out_name}.json", report)
     columns = list(dict.fromkeys((r["scene"], r["edit"]) for r in records))
     lines = [f"Deformation benchmark, preset `{args.preset}` ({full.epochs} x {full.steps_per_epoch} training steps; "
-             f"fine-tuning {report['finetune_epochs']} epoch(s) x {report['finetune_steps_per_epoch']} steps). "
-             f"PSNR (dB) on the edited scenes' test views, background {full.background}. Re-run: `{report['command']}`.", ""]
+             f"fine-tuning {report['finetune_epochs']} epoch(s) x {report['finetune_steps_per_epoch']} steps), "
+             f"commit {report['commit']}. PSNR (dB) on the edited scenes' test views per edit, and the means of "
+             f"PSNR, SSIM and LPIPS (AlexNet; lower is better); background {full.background}. The last row is the "
+             f"unedited model on its own test views (the reference a faithful edit can reach). "
+             f"Re-run: `{report['command']}`.", ""]
+
+    def mean_of(rows, key):
+        vals = [r[key] for r in rows if r.get(key) is not None]
+        return f"{np.mean(vals):.{2 if key == 'psnr' else 3}f}" if vals else ""
+
     for phase, title in (("zero_shot", "Zero-shot"), ("finetune", "Fine-tuned")):
         if not any(phase in r for r in records):
             continue
-        lines += [f"**{title}**", "", "| variant | " + " | ".join(f"{s}/{e}" for s, e in columns) + " | mean |",
-                  "|---|" + "---:|" * (len(columns) + 1)]
+        lines += [f"**{title}**", "", "| variant | " + " | ".join(f"{s}/{e}" for s, e in columns)
+                  + " | PSNR | SSIM | LPIPS |", "|---|" + "---:|" * (len(columns) + 3)]
         for v in variants:
-            vals = [next((r[phase]["psnr"] for r in records if (r["scene"], r["edit"]) == c and r["variant"] == v.name
-                          and phase in r), None) for c in columns]
-            got = [x for x in vals if x is not None]
-            cells = ["" if x is None else f"{x:.2f}" for x in vals]
-            lines.append(f"| {v.label} | " + " | ".join(cells) + f" | {np.mean(got):.2f} |" if got else "")
+            got = {(r["scene"], r["edit"]): r[phase] for r in records if r["variant"] == v.name and phase in r}
+            if not got:
+                continue
+            cells = ["" if c not in got else f"{got[c]['psnr']:.2f}" for c in columns]
+            rows = list(got.values())
+            lines.append(f"| {v.label} | " + " | ".join(cells)
+                         + f" | {mean_of(rows, 'psnr')} | {mean_of(rows, 'ssim')} | {mean_of(rows, 'lpips')} |")
+        own = [unedited[s] for s, _ in columns if s in unedited]
+        if own:
+            cells = [f"{unedited[s]['psnr']:.2f}" if s in unedited else "" for s, _ in columns]
+            lines.append("| unedited model, own test views | " + " | ".join(cells)
+                         + f" | {mean_of(own, 'psnr')} | {mean_of(own, 'ssim')} | {mean_of(own, 'lpips')} |")
         lines.append("")
     atomic_write_text(RESULTS / f"{out_name}.md", "\n".join(lines))
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def write_figure(out_name: str, figure: dict, variants) -> None:

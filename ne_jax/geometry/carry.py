@@ -10,8 +10,9 @@ keeps what the model was trained with instead:
   the KNN, as after pruning);
 * **boxes move with their points**: every subtree under a node of the *frame level* (the growing
   level, ``depth - num_render_levels - 1``: the growing and rendering levels lie below it) gets the
-  rigid motion ``y = R x + t`` that best maps its points' positions at build time to their edited
-  positions (Kabsch, over the subtree's alive members and its candidate set). Its boxes stay as
+  similarity ``y = s R x + t`` that best maps its points' positions at build time to their edited
+  positions (Umeyama, over the subtree's alive members and its candidate set; ``s`` within 1e-5 of
+  1 counts as 1). Its boxes stay as
   built, in the frame of the build, and a ray is tested there (``KDTree.frame_rot/frame_shift``):
   a ray is cut where the same ray was cut before the edit. Boxes are grown by the fit's residual
   (the farthest member from its rigidly moved position), so a smooth deformation keeps every point
@@ -22,10 +23,11 @@ keeps what the model was trained with instead:
   rebuilt locally: their members (the same slots) split again on their edited positions, with world
   boxes as :func:`~ne_jax.geometry.kdtree.build_tree` makes them, and new candidate sets;
 * levels above the frame level hold world boxes bounding their children's (traversal only culls
-  with them), and ``spacing`` (the density's length unit) is kept.
+  with them), and ``spacing`` (the density's length unit) is scaled by the median of the subtrees'
+  scales: kept for rigid motions and smooth deformations, scaled with a uniform scaling.
 
-For a whole-scene rigid motion and cameras moved with it, every segment, sample and neighbour is
-the unedited one up to rounding (tested: ``tests/geometry/test_carry.py``).
+For a whole-scene rigid motion (or uniform scaling) and cameras moved with it, every segment,
+sample and neighbour is the unedited one up to rounding (tested: ``tests/geometry/test_carry.py``).
 
 ``oriented=False`` and ``recompute_candidates=True`` are analysis switches for the equivariance
 study (``experiments/equivariance.py``): world boxes around the moved members for every subtree
@@ -44,24 +46,28 @@ from ne_jax.geometry.kdtree import (KDTree, KDTreeConfig, _cell_boxes, _level_ma
                                     _split_levels)
 
 
-def _kabsch(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted rigid fits ``y ~ R x + t`` of ``[N, n, 3]`` point sets (weights ``w [N, n]``).
-    Sets with fewer than 3 weighted points get ``R = I`` and the mean translation. Returns
-    ``(R [N, 3, 3], t [N, 3])``."""
+def _similarity_fit(x: np.ndarray, y: np.ndarray, w: np.ndarray):
+    """Weighted fits ``y ~ s R x + t`` (a rotation and a uniform scale; Umeyama) of ``[N, n, 3]``
+    point sets (weights ``w [N, n]``). Sets with fewer than 3 weighted points get ``R = I``, ``s = 1``
+    and the mean translation. Returns ``(R [N, 3, 3], s [N], t [N, 3])``."""
     ws = w.sum(axis=1)
     safe = np.maximum(ws, 1e-300)[:, None]
     cx = np.einsum("nk,nka->na", w, x) / safe
     cy = np.einsum("nk,nka->na", w, y) / safe
-    h = np.einsum("nk,nka,nkb->nab", w, x - cx[:, None], y - cy[:, None])
-    u, _, vt = np.linalg.svd(h)
+    xc = x - cx[:, None]
+    h = np.einsum("nk,nka,nkb->nab", w, xc, y - cy[:, None])
+    u, sv, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(np.einsum("nba,ncb->nac", vt, u)))
     d = np.where(d == 0, 1.0, d)
     fix = np.ones((x.shape[0], 3))
     fix[:, 2] = d
     rot = np.einsum("nba,nb,ncb->nac", vt, fix, u)  # V diag(1, 1, d) U^T
-    few = (w > 0).sum(axis=1) < 3
-    rot[few] = np.eye(3)
-    return rot, cy - np.einsum("nab,nb->na", rot, cx)
+    var = np.einsum("nk,nka,nka->n", w, xc, xc)
+    scale = np.where(var > 0, (sv * fix).sum(axis=1) / np.where(var > 0, var, 1.0), 1.0)
+    few = ((w > 0).sum(axis=1) < 3) | ~(scale > 0)
+    rot[few], scale[few] = np.eye(3), 1.0
+    scale[np.abs(scale - 1.0) < 1e-5] = 1.0  # a rigid motion's fit, up to rounding
+    return rot, scale, cy - scale[:, None] * np.einsum("nab,nb->na", rot, cx)
 
 
 def _level_boxes(pos: np.ndarray, ok: np.ndarray, depth: int, first: int):
@@ -133,40 +139,47 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     slot_ok = (perm < cap) & alive[slot_pt]  # [P]
     live = np.append(alive, False)
 
-    # Rigid fit per frame-level subtree, over its alive members and its candidate set.
+    # Similarity fit per frame-level subtree, over its alive members and its candidate set.
     cand = np.asarray(tree.candidates)
     fit_idx = np.concatenate([perm.reshape(nf, span), cand[:nf]], axis=1)  # [nf, span + kc]
     fit_w = live[fit_idx].astype(np.float64)
     safe_idx = np.minimum(fit_idx, cap - 1)
-    rot, shift = _kabsch(rest[safe_idx], new[safe_idx], fit_w)
-    moved = np.einsum("nab,nkb->nka", rot, rest[slot_pt].reshape(nf, span, 3)) + shift[:, None]
+    rot, scale, shift = _similarity_fit(rest[safe_idx], new[safe_idx], fit_w)
+    moved = scale[:, None, None] * np.einsum("nab,nkb->nka", rot, rest[slot_pt].reshape(nf, span, 3)) + shift[:, None]
     err = np.linalg.norm(moved - new[slot_pt].reshape(nf, span, 3), axis=-1)
-    residual = np.where(slot_ok.reshape(nf, span), err, 0.0).max(axis=1)  # [nf]
-    torn = residual > tear_factor * spacing
+    residual = np.where(slot_ok.reshape(nf, span), err, 0.0).max(axis=1)  # [nf], world units
+    occupied = slot_ok.reshape(nf, span).any(axis=1)
+    # the length unit follows the edit's typical scale (exactly s for a uniform scaling by s)
+    unit = float(np.median(scale[occupied])) if occupied.any() else 1.0
+    spacing_world = spacing * unit
+    torn = residual > tear_factor * spacing_world
     framed = ~torn if oriented else np.zeros(nf, bool)
 
     # Positions in the frame each slot's boxes live in: the build frame (framed) or the world.
-    frame_pos = np.einsum("nba,nkb->nka", rot, new[slot_pt].reshape(nf, span, 3) - shift[:, None])
+    frame_pos = np.einsum("nba,nkb->nka", rot, new[slot_pt].reshape(nf, span, 3) - shift[:, None]) \
+        / scale[:, None, None]
     pos = np.where(framed[:, None, None], frame_pos, new[slot_pt].reshape(nf, span, 3)).reshape(-1, 3)
     boxes = _level_boxes(pos, slot_ok, depth, f)
     count_built = np.asarray(tree.count)
 
-    margin0 = cfg.margin_factor * spacing / math.sqrt(3.0)
+    margin0 = cfg.margin_factor * spacing / math.sqrt(3.0)  # in the build's frame
+    margin0_world = margin0 * unit
     lo_all, hi_all = np.asarray(tree.lo, np.float64).copy(), np.asarray(tree.hi, np.float64).copy()
     count_all = count_built.copy()
     for level in range(f, depth + 1):
         (b_lo, b_hi, cnt), g0 = boxes[level - f], 2**level - 1
         sl = slice(g0, g0 + 2**level)
         sub = np.repeat(np.arange(nf), 2 ** (level - f))  # each node's frame-level ancestor
-        m = margin0 * _level_margin_growth(cfg, 2 ** (depth - level))
-        pad = np.where(framed[sub], residual[sub], 0.0)[:, None]
+        growth = _level_margin_growth(cfg, 2 ** (depth - level))
+        m, m_world = margin0 * growth, margin0_world * growth
+        pad = np.where(framed[sub], residual[sub] / scale[sub], 0.0)[:, None]  # in the frame's units
         lo_b, hi_b = lo_all[sl] - pad, hi_all[sl] + pad  # built boxes, grown by the fit's residual
         lost = (cnt < count_built[sl])[:, None]  # shrink to what is left, as a rebuild would
         lo_f = np.where(lost, np.maximum(lo_b, b_lo - m - pad), lo_b)
         hi_f = np.where(lost, np.minimum(hi_b, b_hi + m + pad), hi_b)
         world = ~framed[sub][:, None]
-        lo_new = np.where(world, b_lo - m, lo_f)
-        hi_new = np.where(world, b_hi + m, hi_f)
+        lo_new = np.where(world, b_lo - m_world, lo_f)
+        hi_new = np.where(world, b_hi + m_world, hi_f)
         empty = (cnt == 0)[:, None]
         lo_all[sl] = np.where(empty, 0.0, lo_new)
         hi_all[sl] = np.where(empty, 0.0, hi_new)
@@ -181,7 +194,7 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     resplit = np.flatnonzero(torn & oriented)
     if resplit.size:  # the released code's "too spread out" rule for the boxes made here
         rest_alive = np.flatnonzero(in_tree[:cap])
-        lim = _spacing_and_limit(rest[rest_alive], cKDTree(rest[rest_alive]), cfg)[1]
+        lim = unit * _spacing_and_limit(rest[rest_alive], cKDTree(rest[rest_alive]), cfg)[1]
     for i in resplit:
         ids = perm[i * span : (i + 1) * span]
         ids = ids[ids < cap]
@@ -189,7 +202,7 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
         if ids.size == 0:
             continue
         axes, values, leaf, (b_lo, b_hi, cnt) = _split_levels(new[ids], sub_depth)
-        lo_l, hi_l = _cell_boxes(cfg, axes, values, b_lo, b_hi, cnt, sub_depth, margin0)
+        lo_l, hi_l = _cell_boxes(cfg, axes, values, b_lo, b_hi, cnt, sub_depth, margin0_world)
         perm_new[i * span : (i + 1) * span] = np.where(leaf >= 0, ids[np.maximum(leaf, 0)], cap)
         for level in range(sub_depth + 1):
             g = 2 ** (f + level) - 1 + i * 2**level
@@ -206,7 +219,7 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     c_lo, c_hi = lo_all[g0 : g0 + nf], hi_all[g0 : g0 + nf]
     box_pts = np.where(corners[None] == 0, c_lo[:, None], c_hi[:, None])  # [nf, 8, 3] in each frame
     world_pts = np.where(framed[:, None, None],
-                         np.einsum("nab,nkb->nka", rot, box_pts) + shift[:, None], box_pts)
+                         scale[:, None, None] * np.einsum("nab,nkb->nka", rot, box_pts) + shift[:, None], box_pts)
     full = count_all[g0 : g0 + nf] > 0
     up_lo = np.where(full[:, None], world_pts.min(axis=1), np.inf)
     up_hi = np.where(full[:, None], world_pts.max(axis=1), -np.inf)
@@ -233,8 +246,9 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
         kd = cKDTree(new[idx])
         centre = 0.5 * (lo_all[first + rows[redo]] + hi_all[first + rows[redo]])
         frame = framed[sub_of[redo]]
+        j = sub_of[redo]
         centre = np.where(frame[:, None],  # framed boxes: their centre in the world
-                          np.einsum("nab,nb->na", rot[sub_of[redo]], centre) + shift[sub_of[redo]], centre)
+                          scale[j, None] * np.einsum("nab,nb->na", rot[j], centre) + shift[j], centre)
         k = min(kc, idx.size)
         _, near = kd.query(centre, k=k, workers=-1)
         near = idx[np.reshape(near, (-1, k))]
@@ -242,12 +256,12 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
 
     valid &= count_all > 0
     if report is not None:
-        report.update(subtrees=int(nf), torn=int(torn.sum()), max_residual=float(residual.max() / spacing),
+        report.update(subtrees=int(nf), torn=int(torn.sum()), max_residual=float(residual.max() / spacing_world), scale=unit,
                       emptied=int(((count_all == 0) & (count_built > 0)).sum()))
     dtype = np.asarray(tree.lo).dtype
     frames = {}
     if framed.any():
-        inv_rot = np.where(framed[:, None, None], np.transpose(rot, (0, 2, 1)), np.eye(3))
+        inv_rot = np.where(framed[:, None, None], np.transpose(rot, (0, 2, 1)) / scale[:, None, None], np.eye(3))
         inv_shift = np.where(framed[:, None], -np.einsum("nab,nb->na", inv_rot, shift), 0.0)
         frames = dict(frame_rot=jnp.asarray(inv_rot.astype(dtype)), frame_shift=jnp.asarray(inv_shift.astype(dtype)),
                       frame_level=f)
@@ -255,7 +269,8 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
                         count=jnp.asarray(count_all.astype(np.int32)), valid=jnp.asarray(valid),
                         perm=jnp.asarray(perm_new.astype(np.int32)), split_axis=jnp.asarray(split_axis.astype(np.int32)),
                         split_value=jnp.asarray(split_value.astype(dtype)),
-                        candidates=jnp.asarray(cand_new.astype(np.int32)), **frames)
+                        candidates=jnp.asarray(cand_new.astype(np.int32)),
+                        spacing=jnp.asarray(spacing_world, dtype), **frames)
 
 
 __all__ = ["carry_tree"]

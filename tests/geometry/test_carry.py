@@ -207,3 +207,16 @@ def test_carried_trees_do_not_recompile(cloud):
         if angle == 10.0:
             before = intersect._cache_size()
     assert intersect._cache_size() == before
+
+
+def test_uniform_scaling_scales_segments_and_the_length_unit(cloud):
+    x, alive, tree = cloud
+    s, t = 1.3, np.array([0.2, -0.1, 0.3], np.float32)
+    carried = carry_tree(tree, x, (s * x + t).astype(np.float32), alive, CFG)
+    assert float(carried.spacing) == pytest.approx(s * float(tree.spacing), rel=1e-5)
+    o, d = _aimed_rays(x)
+    before = intersect(tree, make_rays(o, d), CFG)
+    after = intersect(carried, make_rays((s * o + t).astype(np.float32), d), CFG)
+    np.testing.assert_array_equal(np.asarray(before.node), np.asarray(after.node))
+    np.testing.assert_allclose(s * np.asarray(before.t_lo), np.asarray(after.t_lo), atol=3e-5)
+    np.testing.assert_allclose(s * np.asarray(before.t_hi), np.asarray(after.t_hi), atol=3e-5)
