@@ -469,11 +469,12 @@ def _superset_widths(kc: int, levels: int) -> list[int]:
     return [max(kc, int(round(v * kc))) for v in grow[::-1]]
 
 
-def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
+def _candidate_sets(xo, kd, centre, nonempty, first_level, depth, kc, out_index, cap):
     """Candidate sets of the levels ``first_level .. depth-1`` (rows in heap order from the first
     node of ``first_level``): the ``kc`` points of ``xo`` nearest each ``centre``, nearest first,
     mapped through ``out_index`` (``[n + 1]``, entry ``n`` = the sentinel), and the distance of the
-    farthest one (``radius``).
+    farthest one (``radius``). Rows where ``nonempty`` is False (nodes holding no point: nothing
+    reads them) are the sentinel ``cap`` with radius 0, and cost nothing.
 
     A cascade instead of one ``kd.query`` per node. Each growing-level node queries a superset of
     ``w_0 > kc`` points; each node's children then pick from their parent's superset, sorted by
@@ -483,16 +484,18 @@ def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
     distance). For a child at ``c'``, ``|c' - c| = off``, every point closer than ``R - off`` to
     ``c'`` is in ``S`` (triangle inequality), so its pick is exact when its ``kc``-th distance is
     below ``R - off`` (shrunk by a relative 1e-12 for rounding); its own radius is
-    ``min(R - off, first distance left out)``. Nodes failing the test (about 1% on surface clouds)
-    fall back to a direct query. Distances are computed as scipy does (float64, ``dx² + dy² + dz²``)
-    and sorted as one uint64 key per entry: the squared distance's bits with its low bits replaced
-    by the entry's position in the parent's superset, so distances equal to ~1e-13 relative are
-    ordered by that position (ties: any order is correct)."""
+    ``min(R - off, first distance left out)``. Nodes failing the test (about 1% on surface clouds,
+    up to half at the bottom levels of a uniform volume) fall back to a direct query. Distances are
+    computed as scipy does (float64, ``dx² + dy² + dz²``) and ordered as one uint64 key per entry:
+    the squared distance's bits with its low bits replaced by the entry's position in the parent's
+    superset, so distances equal to ~1e-13 relative are ordered by that position (ties: any order
+    is correct). Keys are distinct, so a partition at ``w`` and a sort of the first ``w`` give the
+    first ``w + 1`` entries of a full sort."""
     n = xo.shape[0]
     widths = _superset_widths(kc, depth - first_level)
     total = centre.shape[0]
-    cand = np.empty((total, kc), np.int32)
-    radius = np.empty(total, np.float64)
+    cand = np.full((total, kc), cap, np.int32)
+    radius = np.zeros(total, np.float64)
     kth = min(kc, n) - 1  # the farthest candidate that exists
     xs = [np.append(xo[:, a], np.inf) for a in range(3)]  # row n: the sentinel, infinitely far
     nbits = np.uint64((max(widths) - 1).bit_length())
@@ -512,26 +515,53 @@ def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
 
     def run_block(b0):
         b1 = min(b0 + _GROW_BLOCK, ngrow)
-        gd, gi = query(centre[b0:b1], widths[0])
-        cand[b0:b1] = out_index[gi[:, :kc]]
-        radius[b0:b1] = gd[:, kth]
-        for c0 in range(b0, b1, _CASCADE_CHUNK):
-            c1 = min(c0 + _CASCADE_CHUNK, b1)
-            sup, rad, cp = gi[c0 - b0 : c1 - b0], gd[c0 - b0 : c1 - b0, -1], centre[c0:c1]
+        rows = b0 + np.flatnonzero(nonempty[b0:b1])  # growing-level rows holding points
+        if rows.size == 0:
+            return
+        gd, gi = query(centre[rows], widths[0])
+        cand[rows] = out_index[gi[:, :kc]]
+        radius[rows] = gd[:, kth]
+        for j0 in range(0, rows.size, _CASCADE_CHUNK):
+            j1 = min(j0 + _CASCADE_CHUNK, rows.size)
+            # State per level: the non-empty nodes' local indices (within the level) and supersets.
+            loc_idx, sup, rad = rows[j0:j1], gi[j0:j1], gd[j0:j1, -1]
+            cp = centre[loc_idx]
             for s in range(1, depth - first_level):
                 w, wp = widths[s], sup.shape[1]
-                npar, m = sup.shape[0], 2 * sup.shape[0]
-                r0 = 2 ** (first_level + s) - ngrow + (c0 << s)
-                c = centre[r0 : r0 + m]
-                c3 = c.reshape(npar, 2, 3)
-                d2 = np.zeros((npar, 2, wp))
-                for a in range(3):
-                    t = xs[a][sup][:, None, :] - c3[:, :, a, None]
-                    t *= t
-                    d2 += t
-                d2 = d2.reshape(m, wp)
+                npar = sup.shape[0]
+                r0 = 2 ** (first_level + s) - ngrow  # row of the level's first node
+                kids = (2 * loc_idx[:, None] + np.arange(2)).reshape(-1)
+                full = nonempty[r0 + kids]
+                if full.all():  # both children of every parent: siblings share the gathers
+                    c = centre[r0 + kids]
+                    c3 = c.reshape(npar, 2, 3)
+                    d2 = np.zeros((npar, 2, wp))
+                    for a in range(3):
+                        t = xs[a][sup][:, None, :] - c3[:, :, a, None]
+                        t *= t
+                        d2 += t
+                    m = 2 * npar
+                    d2 = d2.reshape(m, wp)
+                    psup = None
+                    prad, pc = np.repeat(rad, 2), np.repeat(cp, 2, axis=0)
+                else:
+                    pi = np.repeat(np.arange(npar), 2)[full]
+                    kids = kids[full]
+                    c = centre[r0 + kids]
+                    m = kids.size
+                    psup = sup[pi]
+                    d2 = np.zeros((m, wp))
+                    for a in range(3):
+                        t = xs[a][psup] - c[:, a, None]
+                        t *= t
+                        d2 += t
+                    prad, pc = rad[pi], cp[pi]
                 key = key_of(d2, wp)
-                key.sort(axis=1)
+                if w < wp:
+                    key = np.partition(key, w, axis=1)
+                    key[:, :w] = np.sort(key[:, :w], axis=1)
+                else:
+                    key.sort(axis=1)
                 head = key[:, : kc + 1] >> nbits
                 near = np.flatnonzero((head[:, 1:] == head[:, :-1]).any(axis=1))
                 if near.size:  # distances equal in their top bits: order those rows exactly
@@ -539,10 +569,13 @@ def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
                     order = np.lexsort((np.broadcast_to(np.arange(wp), sub.shape), sub), axis=-1)
                     key[near] = np.take_along_axis(key_of(sub, wp), order, axis=1)
                 loc = (key[:, :w] & low).view(np.int64)
-                glob = np.take_along_axis(sup, loc.reshape(npar, 2 * w), axis=1).reshape(m, w)
+                if psup is None:
+                    glob = np.take_along_axis(sup, loc.reshape(npar, 2 * w), axis=1).reshape(m, w)
+                else:
+                    glob = np.take_along_axis(psup, loc, axis=1)
                 rk = np.sqrt(d2[np.arange(m), loc[:, kth]])
-                off = np.linalg.norm(c - np.repeat(cp, 2, axis=0), axis=1)
-                rc = (np.repeat(rad, 2) - off) * (1.0 - 1e-12)
+                off = np.linalg.norm(c - pc, axis=1)
+                rc = (prad - off) * (1.0 - 1e-12)
                 far = np.minimum(key[:, kc - 1] | low, inf_bits)  # an upper bound of the kc-th
                 exact = np.isinf(rc) | (np.sqrt(far.view(np.float64)) < rc)
                 if w < wp:
@@ -551,9 +584,9 @@ def _candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
                 if fb.size:
                     fd, fi = query(c[fb], w)
                     glob[fb], rk[fb], rc[fb] = fi, fd[:, kth], fd[:, -1]
-                cand[r0 : r0 + m] = out_index[glob[:, :kc]]
-                radius[r0 : r0 + m] = rk
-                sup, rad, cp = glob, rc, c
+                cand[r0 + kids] = out_index[glob[:, :kc]]
+                radius[r0 + kids] = rk
+                loc_idx, sup, rad, cp = kids, glob, rc, c
 
     threads = min(_THREADS, -(-ngrow // _GROW_BLOCK))
     if threads > 1:
@@ -619,7 +652,7 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     centre = 0.5 * (lo_all[first:last].astype(np.float64) + hi_all[first:last].astype(np.float64))
     out_index = np.append(idx[slot_pts], cap).astype(np.int32)
     cand, radius = _candidate_sets(
-        kd.data, kd, centre, depth - cfg.num_render_levels - 1, depth, kc, out_index
+        kd.data, kd, centre, count_all[first:last] > 0, depth - cfg.num_render_levels - 1, depth, kc, out_index, cap
     )
     # Validity at the rendering levels: the released code's "too spread out" rule.
     r0 = 2 ** (depth - cfg.num_render_levels) - 1

@@ -7,7 +7,7 @@ import pytest
 from ne_jax.geometry import KDTreeConfig, build_tree, tree_depth
 
 from .clouds import CLOUDS, sphere
-from .reference import check_candidates, check_tree
+from .reference import build_tree_reference, check_candidates, check_tree
 
 CFG = KDTreeConfig.tiny()
 
@@ -114,11 +114,16 @@ def test_config_is_hashable_and_has_presets():
     assert KDTreeConfig.tiny().num_candidates == 16
 
 
-@pytest.mark.parametrize("cfg", [KDTreeConfig.tiny(), KDTreeConfig(), KDTreeConfig(depth=13)], ids=["tiny", "default", "depth13"])
+@pytest.mark.parametrize(
+    "cfg", [KDTreeConfig.tiny(), KDTreeConfig(), KDTreeConfig(depth=13), KDTreeConfig.tiny(depth=15)],
+    ids=["tiny", "default", "depth13", "tiny_depth15"],
+)
 def test_candidates_exact_on_every_node(cfg):
-    """Every candidate row (the cascade's picks and its fallback queries alike) holds exactly the
-    ``num_candidates`` nearest alive points in nondecreasing distance: its distances equal, entry by
-    entry, scipy's sorted k-NN distances from the box centre (only tied points may be swapped)."""
+    """Every candidate row of a node holding points (the cascade's picks and its fallback queries
+    alike) holds exactly the ``num_candidates`` nearest alive points in nondecreasing distance: its
+    distances equal, entry by entry, scipy's sorted k-NN distances from the box centre (only tied
+    points may be swapped). Rows of empty nodes (a fixed depth far above log2(n) leaves most deep
+    nodes empty; nothing reads them) hold only the sentinel."""
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(11)
@@ -135,8 +140,13 @@ def test_candidates_exact_on_every_node(cfg):
     lo, hi = np.asarray(tree.lo, np.float64), np.asarray(tree.hi, np.float64)
     cand = np.asarray(tree.candidates)
     cap, kc = len(xyz), cfg.num_candidates
-    rows = np.arange(cand.shape[0])
-    centre = 0.5 * (lo + hi)[tree.first_candidate_node + rows]
+    nodes = tree.first_candidate_node + np.arange(cand.shape[0])
+    full = np.asarray(tree.count)[nodes] > 0
+    if cfg.depth is not None and cfg.depth > 13:
+        assert 0 < full.sum() < full.size / 2  # the case this test is for: mostly empty deep nodes
+    np.testing.assert_array_equal(cand[~full], cap)
+    cand, nodes = cand[full], nodes[full]
+    centre = 0.5 * (lo + hi)[nodes]
     pts = np.flatnonzero(alive)
     d_ref, _ = cKDTree(xyz[pts].astype(np.float64)).query(centre, k=kc)
     x = np.concatenate([xyz.astype(np.float64), np.full((1, 3), np.inf)])
@@ -145,3 +155,38 @@ def test_candidates_exact_on_every_node(cfg):
     assert np.all(alive[cand[cand < cap]])
     real = np.where(cand < cap, cand, -1 - np.arange(kc))  # distinct sentinels
     assert all(len(set(r)) == kc for r in real)
+
+
+_SAME_CLOUDS = {
+    "sphere_deleted": (lambda rng: sphere(3000, seed=4), KDTreeConfig()),
+    "uniform": (lambda rng: rng.uniform(-1, 1, (20000, 3)).astype(np.float32), KDTreeConfig()),
+    "grid_duplicates": (
+        lambda rng: np.repeat(
+            np.stack(np.meshgrid(*[np.arange(9, dtype=np.float32)] * 3, indexing="ij"), -1).reshape(-1, 3), 2, 0
+        ),
+        KDTreeConfig.tiny(),
+    ),
+    "clusters_fixed_depth": (
+        lambda rng: np.concatenate([sphere(2000, seed=5), 0.01 * rng.normal(size=(500, 3)).astype(np.float32)]),
+        KDTreeConfig(depth=16),
+    ),
+    "tiny_fixed_depth": (lambda rng: rng.normal(size=(300, 3)).astype(np.float32), KDTreeConfig.tiny(depth=12)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_SAME_CLOUDS))
+def test_build_matches_the_reference_build(name):
+    """The optimised build equals the previous one (``reference.build_tree_reference``, a verbatim
+    copy) bit for bit on every field: partition, boxes, splits, validity, spacing and candidate
+    rows, the empty nodes' rows included (both hold the sentinel there)."""
+    rng = np.random.default_rng(3)
+    make, cfg = _SAME_CLOUDS[name]
+    xyz = make(rng)
+    alive = rng.random(len(xyz)) > 0.1
+    a = build_tree_reference(xyz, alive, cfg)
+    b = build_tree(xyz, alive, cfg)
+    for field in ("lo", "hi", "count", "valid", "split_axis", "split_value", "perm", "candidates", "spacing"):
+        x, y = np.asarray(getattr(a, field)), np.asarray(getattr(b, field))
+        assert x.dtype == y.dtype and x.shape == y.shape, field
+        np.testing.assert_array_equal(x, y, err_msg=field)
+    assert (a.depth, a.capacity, a.num_render_levels) == (b.depth, b.capacity, b.num_render_levels)
