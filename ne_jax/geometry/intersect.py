@@ -21,6 +21,12 @@ The ray hits the box iff the clipped interval ``[max(enter, near), min(exit, far
 corner, grazing a box, or tangent to a curved cluster are then deterministic misses; a ray lying in a
 face plane (parallel axis, origin on the face) counts as inside.
 
+A tree carried through an edit (:mod:`ne_jax.geometry.carry`) keeps the boxes of each subtree below
+its frame level in the frame the subtree's points had when the tree was built: there the ray is
+mapped into that frame (``x -> frame_rot @ x + frame_shift``, a similarity, so ``t`` keeps its
+meaning) before the slab test, and a ray is cut where the same ray was cut before the edit. A built
+tree has no frames and traces none of this.
+
 Capacities are static (``cfg.frontier_capacity``, ``cfg.max_segments``); what does not fit is
 counted per ray (``frontier_overflow``: nodes dropped from a frontier, whose whole subtree is lost;
 ``segment_overflow``: emitted segments beyond the slots). ``intersect_checked`` (host) re-allocates
