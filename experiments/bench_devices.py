@@ -41,10 +41,10 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def worker(steps: int, res: int, repeats: int) -> dict:
-    import ne_jax  # noqa: F401  (first: the host device count is set on import)
     import jax
     import jax.numpy as jnp
 
+    import ne_jax  # noqa: F401  (first: the host device count is set on import)
     from ne_jax._platform import usable_cores
     from ne_jax.data.benchmark import get_preset
     from ne_jax.data.rays import Camera, camera_rays
@@ -148,7 +148,9 @@ def main(argv=None) -> None:
     from ne_jax._platform import ENV, usable_cores
 
     cores = usable_cores()
-    settings = [("1", "1"), ("default", None)] + ([(f"{args.extra}x cores", str(args.extra * cores))] if args.extra else [])
+    settings = [("1", "1"), ("default", None)]
+    if args.extra:
+        settings.append((f"{args.extra}x cores", str(args.extra * cores)))
     base_env = {k: v for k, v in os.environ.items() if k not in (ENV, "XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
     base_env["JAX_PLATFORMS"] = "cpu"
     rows = []
@@ -174,12 +176,12 @@ def main(argv=None) -> None:
         f"--{k} {v}" for k, v in vars(args).items() if k != "worker")
     modified = [line[3:] for line in _git("status", "--porcelain", "--untracked-files=no").splitlines() if line.strip()]
     dirty = bool(modified)
-    report = {"what": "tiny training step and test-image render: 1 host device vs one per core (import ne_jax's default)",
+    report = {"what": "tiny training step and test-image render: 1 host device vs one per core (ne_jax's default)",
               "commit": _git("rev-parse", "HEAD"), "worktree_modified": modified, "command": command,
               "seconds": round(time.perf_counter() - t_start, 1), "rows": rows,
               "machine": {"usable_cores": cores, "cpu_count": os.cpu_count(), "platform": platform.platform(),
                           "python": platform.python_version()},
-              "shared": "other jobs ran on the same cores; load_before is the 1-minute load average before each process"}
+              "shared": "other jobs ran on the same cores; load_before: the 1-minute load average before each process"}
     RESULTS.mkdir(exist_ok=True)
     from ne_jax.atomic import atomic_write_json, atomic_write_text
 
@@ -193,9 +195,10 @@ def main(argv=None) -> None:
              "render CPU/wall | threads | compile step / render (s) |",
              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        lines.append(f"| {r['round']} | {r['setting']} | {r['devices']} | {r['load_before']} | {r['train_s_per_step']} | "
-                     f"{r['train_speedup']} | {r['train_cpu_per_wall']} | {r['render_s']} | {r['render_speedup']} | "
-                     f"{r['render_cpu_per_wall']} | {r['threads']} | {r['train_compile_s']} / {r['render_compile_s']} |")
+        lines.append(f"| {r['round']} | {r['setting']} | {r['devices']} | {r['load_before']} | "
+                     f"{r['train_s_per_step']} | {r['train_speedup']} | {r['train_cpu_per_wall']} | {r['render_s']} | "
+                     f"{r['render_speedup']} | {r['render_cpu_per_wall']} | {r['threads']} | "
+                     f"{r['train_compile_s']} / {r['render_compile_s']} |")
     atomic_write_text(RESULTS / "bench_devices.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 

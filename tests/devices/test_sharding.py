@@ -22,6 +22,7 @@ from ne_jax.devices import default_mesh, even_mesh, padded_size, ray_mesh
 from ne_jax.render.renderer import render_chunked
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
+
 from tests.hard_cases.render_scene import CFG, build, scene_inputs
 
 multidevice = pytest.mark.multidevice
@@ -117,7 +118,8 @@ def test_a_batch_that_does_not_split_over_the_mesh_trains_on_the_part_it_splits_
     params, scene, rays, bg = scene_and_rays
     mesh = default_mesh()
     assert mesh.devices.size == 4
-    assert even_mesh(64, mesh) is mesh and even_mesh(66, mesh).devices.size == 3 and even_mesh(67, mesh).devices.size == 1
+    assert even_mesh(64, mesh) is mesh
+    assert even_mesh(66, mesh).devices.size == 3 and even_mesh(67, mesh).devices.size == 1
     rays = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a[:2]]), rays)
     tcfg = TrainConfig(total_steps=10)
     state = init_train_state(tcfg, CFG, scene.points, jax.random.key(0))
@@ -130,5 +132,6 @@ def test_a_batch_that_does_not_split_over_the_mesh_trains_on_the_part_it_splits_
     assert bool(m3["ok"]) and step._cache_size() == 1
     for k in m1:
         np.testing.assert_allclose(np.asarray(m3[k]), np.asarray(m1[k]), rtol=2e-5, atol=1e-6, err_msg=k)
-    for a, b in zip(jax.tree_util.tree_leaves((s1.params, s1.points)), jax.tree_util.tree_leaves((s3.params, s3.points))):
+    leaves = jax.tree_util.tree_leaves
+    for a, b in zip(leaves((s1.params, s1.points)), leaves((s3.params, s3.points))):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
