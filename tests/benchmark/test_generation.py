@@ -8,13 +8,12 @@ import pytest
 
 from ne_jax.cli import main
 from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import BenchmarkPreset, generate_benchmark, generate_scene, list_variants
+from ne_jax.data.benchmark import generate_benchmark, generate_scene, list_variants
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.ply import read_ply
 from ne_jax.viz import contact_sheet
 
-MINI = BenchmarkPreset("mini", resolution=16, train_views=3, val_views=1, test_views=2, supersample=1,
-                       detail=0.5, surface_samples=400)
+from tests.mini_presets import GEN_SCENES
 
 
 def digest_tree(root: Path) -> dict[str, str]:
@@ -25,18 +24,18 @@ def digest_tree(root: Path) -> dict[str, str]:
 @pytest.fixture(scope="module")
 def glossy_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench_a")
-    generate_scene("glossy", MINI, root, seed=0)
+    generate_scene("glossy", GEN_SCENES, root, seed=0)
     return root
 
 
 def test_same_seed_same_bytes(glossy_root, tmp_path):
-    generate_scene("glossy", MINI, tmp_path, seed=0)
+    generate_scene("glossy", GEN_SCENES, tmp_path, seed=0)
     a, b = digest_tree(glossy_root / "glossy"), digest_tree(tmp_path / "glossy")
     assert len(a) > 20 and a == b
 
 
 def test_other_seed_other_cameras(glossy_root, tmp_path):
-    generate_scene("glossy", MINI, tmp_path, seed=1)
+    generate_scene("glossy", GEN_SCENES, tmp_path, seed=1)
     a = load_split(glossy_root / "glossy", "train").c2w
     b = load_split(tmp_path / "glossy", "train").c2w
     assert not np.allclose(a, b)
@@ -78,7 +77,7 @@ def test_contact_sheet(glossy_root, tmp_path):
 
 def test_generate_benchmark_rejects_unknown_scene_before_writing(tmp_path):
     with pytest.raises(KeyError, match="unknown scene 'lego'"):
-        generate_benchmark(tmp_path, MINI, ["glossy", "lego"])
+        generate_benchmark(tmp_path, GEN_SCENES, ["glossy", "lego"])
     assert not (tmp_path / "glossy").exists()
 
 
@@ -88,7 +87,7 @@ def test_failed_scene_leaves_nothing(tmp_path, monkeypatch):
 
     monkeypatch.setattr("ne_jax.data.benchmark.write_split", boom)
     with pytest.raises(RuntimeError, match="disk full"):
-        generate_scene("cup", MINI, tmp_path)
+        generate_scene("cup", GEN_SCENES, tmp_path)
     assert list(tmp_path.iterdir()) == []
 
 

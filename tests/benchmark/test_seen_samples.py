@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 
 from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import BenchmarkPreset, generate_scene, seen_surface_samples
+from ne_jax.data.benchmark import generate_scene, seen_surface_samples
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.ply import read_ply
 
-MINI = BenchmarkPreset("mini", resolution=16, train_views=4, val_views=1, test_views=1, supersample=1,
-                       detail=0.3, surface_samples=300)
+from tests.mini_presets import mini_benchmark
+
+MINI = mini_benchmark(resolution=16, train_views=4, detail=0.3, surface_samples=300)
 
 
 @pytest.fixture(scope="module")

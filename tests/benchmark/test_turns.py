@@ -9,20 +9,20 @@ import numpy as np
 import pytest
 
 from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+from ne_jax.data.benchmark import generate_scene
 from ne_jax.data.nerf_synthetic import load_split, write_split
 from ne_jax.data.ply import read_ply
 from ne_jax.edit import deformations as D
 
-MINI = BenchmarkPreset("mini", resolution=16, train_views=3, val_views=1, test_views=2, supersample=1,
-                       detail=0.5, surface_samples=400)
+from tests.mini_presets import GEN_SCENES
+
 TURNS = ("turn_with_light", "turn_scene")
 
 
 @pytest.fixture(scope="module")
 def glossy_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("turns")
-    generate_scene("glossy", MINI, root, seed=0)
+    generate_scene("glossy", GEN_SCENES, root, seed=0)
     return root
 
 
@@ -46,15 +46,16 @@ def test_every_scene_ends_with_the_same_two_turns(name):
 def test_co_moving_truth_is_the_original_from_inversely_moved_cameras(glossy_root, tmp_path):
     """Bit for bit: the PNGs of ``turn_with_light`` are the original scene rendered from ``T^-1 @ c2w``,
     while its transforms hold the original cameras."""
-    scene = S.get_scene("glossy", MINI.detail)
+    scene = S.get_scene("glossy", GEN_SCENES.detail)
     edit = scene.edits["turn_with_light"]
     target = glossy_root / "glossy" / "edits" / "turn_with_light"
-    cams = S.orbit_cameras(MINI.test_views)
+    cams = S.orbit_cameras(GEN_SCENES.test_views)
     written = json.loads((target / "transforms_test.json").read_text())
     np.testing.assert_array_equal([f["transform_matrix"] for f in written["frames"]], cams)
     caster = S.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials)
     moved = np.linalg.inv(edit.matrix) @ cams
-    images = np.stack([caster.render(c, MINI.resolution, MINI.resolution, S.CAMERA_ANGLE_X, MINI.supersample)
+    res = GEN_SCENES.resolution
+    images = np.stack([caster.render(c, res, res, S.CAMERA_ANGLE_X, GEN_SCENES.supersample)
                        for c in moved]).astype(np.float32)
     write_split(tmp_path, "test", images, cams, S.CAMERA_ANGLE_X)
     assert {k: v for k, v in _digests(tmp_path).items() if k.endswith(".png")} == \
@@ -77,7 +78,8 @@ def test_turning_mesh_lights_and_sky_together_is_moving_the_camera():
     assert np.mean(diff > 1e-4) <= 0.005 and diff.mean() < 1e-4
     # the same turn with the lights and sky fixed looks different on this glossy scene: highlights
     # and reflections slide over the surface
-    fixed = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials).render(motion @ c2w, 32, 32, S.CAMERA_ANGLE_X, 2)
+    fixed = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials).render(motion @ c2w, 32, 32,
+                                                                                   S.CAMERA_ANGLE_X, 2)
     np.testing.assert_array_equal(fixed[..., 3], image[..., 3])
     assert np.abs(fixed - image)[..., :3].max() > 0.2
 
@@ -104,9 +106,9 @@ def test_co_moving_and_fixed_turns_differ_in_colour_not_in_silhouette(glossy_roo
 def test_turned_points_are_the_rotated_samples(glossy_root, turn):
     original = read_ply(glossy_root / "glossy" / "points.ply")
     edited = read_ply(glossy_root / "glossy" / "edits" / turn / "points.ply")
-    motion = S.get_scene("glossy", MINI.detail).edits[turn].matrix
+    motion = S.get_scene("glossy", GEN_SCENES.detail).edits[turn].matrix
     rot, shift = motion[:3, :3], motion[:3, 3]
-    np.testing.assert_array_equal(edited["index"], np.arange(MINI.surface_samples))
+    np.testing.assert_array_equal(edited["index"], np.arange(GEN_SCENES.surface_samples))
     xyz = np.stack([original[a] for a in "xyz"], 1).astype(np.float64)
     normal = np.stack([original[f"n{a}"] for a in "xyz"], 1).astype(np.float64)
     np.testing.assert_allclose(np.stack([edited[a] for a in "xyz"], 1), xyz @ rot.T + shift, atol=2e-6)
@@ -121,13 +123,13 @@ def test_turned_points_are_the_rotated_samples(glossy_root, turn):
 def test_turns_are_deterministic_and_leave_the_other_edits_alone(glossy_root, tmp_path, monkeypatch):
     """Same seed, same bytes for the turns; and a scene made without them has the same bytes in
     every other edit (appending them shifts no random stream)."""
-    generate_scene("glossy", MINI, tmp_path / "again", seed=0)
+    generate_scene("glossy", GEN_SCENES, tmp_path / "again", seed=0)
     for turn in TURNS:
         a = _digests(glossy_root / "glossy" / "edits" / turn)
-        assert len(a) == 4 + MINI.train_views + MINI.test_views  # two transforms, points.ply, scene.json
+        assert len(a) == 4 + GEN_SCENES.train_views + GEN_SCENES.test_views  # two transforms, points.ply, scene.json
         assert a == _digests(tmp_path / "again" / "glossy" / "edits" / turn)
     monkeypatch.setattr(S, "scene_turns", lambda: ())
-    generate_scene("glossy", MINI, tmp_path / "without", seed=0)
+    generate_scene("glossy", GEN_SCENES, tmp_path / "without", seed=0)
     without = _digests(tmp_path / "without" / "glossy")
     with_turns = _digests(glossy_root / "glossy")
     assert not any(k.startswith("edits/turn") for k in without)

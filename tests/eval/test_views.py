@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+from ne_jax.data.benchmark import generate_scene
 from ne_jax.data.nerf_synthetic import composite, load_split, write_split
 from ne_jax.data.ply import read_ply
 from ne_jax.data.png import read_image
@@ -38,8 +38,9 @@ from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import init_color_model
 
-MICRO = BenchmarkPreset("micro", resolution=16, train_views=1, val_views=1, test_views=2, supersample=1,
-                        detail=0.3, surface_samples=400)
+from tests.mini_presets import mini_benchmark
+
+MICRO = mini_benchmark(name="micro", resolution=16, train_views=1, test_views=2, detail=0.3, surface_samples=400)
 RCFG = RenderConfig.tiny(chunk=256)  # one 16x16 image per compiled call
 
 
@@ -120,7 +121,8 @@ def split32(world, tmp_path_factory):
     """A split of two 32 x 32 RGBA images (smooth colours, a transparent corner), large enough for
     LPIPS's AlexNet (31 x 31), with the micro split's cameras."""
     yy, xx = np.mgrid[:32, :32] / 32
-    rgb = [np.stack([0.5 + 0.4 * np.sin((4 + k) * xx + c) * np.cos(3 * yy + c) for c in range(3)], -1) for k in range(2)]
+    rgb = [np.stack([0.5 + 0.4 * np.sin((4 + k) * xx + c) * np.cos(3 * yy + c) for c in range(3)], -1)
+           for k in range(2)]
     alpha = np.where((xx > 0.7) & (yy > 0.7), 0.0, 1.0)[..., None]
     images = np.stack([np.concatenate([im, alpha], -1) for im in rgb])
     scene_dir = tmp_path_factory.mktemp("split32")

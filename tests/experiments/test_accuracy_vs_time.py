@@ -125,27 +125,13 @@ def test_fit_order_recovers_a_power_law():
 def mini(tmp_path_factory):
     """``(root, scene_dir, run)``: a 24-px generated glossy scene (as tests/edit/test_model.py) and a
     RunConfig of a few steps."""
-    import dataclasses
+    from ne_jax.data.benchmark import generate_scene
 
-    from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
-    from ne_jax.geometry.kdtree import KDTreeConfig
-    from ne_jax.pointcloud.optimise import PointOptConfig
-    from ne_jax.render.quadrature import QuadratureConfig
-    from ne_jax.render.renderer import RenderConfig
-    from ne_jax.train import SamplerConfig, TrainConfig
-    from ne_jax.train.loop import InitConfig, RunConfig
+    from tests.mini_presets import mini_benchmark, short_run
 
     root = tmp_path_factory.mktemp("avt_mini")
-    preset = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
-                             detail=0.4, surface_samples=2000)
-    generate_scene("glossy", preset, root / "bench", seed=0)
-    render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24),
-                               quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
-    init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
-    run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),
-                    init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
-                    epochs=1, steps_per_epoch=4, point_rounds=(1, 0), log_every=2).with_schedule()
-    return root, root / "bench" / "glossy", run
+    generate_scene("glossy", mini_benchmark(train_views=4), root / "bench", seed=0)
+    return root, root / "bench" / "glossy", short_run()
 
 
 @pytest.fixture(scope="module")

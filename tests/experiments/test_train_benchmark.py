@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.mini_presets import TRAIN_SCENE
+
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "train_benchmark.py"
 
 
@@ -35,11 +37,9 @@ def test_a_short_run_writes_the_table(tmp_path):
     """Two steps on a small scene: the JSON and the table hold both Chamfer measures."""
     import json
 
-    from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+    from ne_jax.data.benchmark import generate_scene
 
-    mini = BenchmarkPreset("mini", resolution=24, train_views=5, val_views=1, test_views=1, supersample=1,
-                           detail=0.4, surface_samples=2000)
-    generate_scene("glossy", mini, tmp_path / "bench", seed=0)
+    generate_scene("glossy", TRAIN_SCENE, tmp_path / "bench", seed=0)
     _load().main(["--preset", "tiny", "--root", str(tmp_path / "bench"), "--scenes", "glossy", "--epochs", "1",
                   "--steps-per-epoch", "2", "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "out")])
     s = json.loads((tmp_path / "out" / "train_benchmark_tiny.json").read_text())["scenes"]["glossy"]

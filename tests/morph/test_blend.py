@@ -13,12 +13,20 @@ import numpy as np
 import pytest
 
 from ne_jax.cli import main
-from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+from ne_jax.data.benchmark import generate_scene
 from ne_jax.data.rays import Camera
 from ne_jax.data.synthetic import orbit_cameras
 from ne_jax.geometry.points import PointState
-from ne_jax.morph import (BlendedShading, MorphSettings, blended_render_config, linear_path, morph_models, morph_scene,
-                          pair_models, render_morph)
+from ne_jax.morph import (
+    BlendedShading,
+    MorphSettings,
+    blended_render_config,
+    linear_path,
+    morph_models,
+    morph_scene,
+    pair_models,
+    render_morph,
+)
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render import renderer
 from ne_jax.render.quadrature import at_test_time
@@ -26,6 +34,8 @@ from ne_jax.render.renderer import PointScene, RenderConfig, render_image
 from ne_jax.render.shading import Effects, init_color_model, shade
 from ne_jax.train.loop import RunConfig, TrainedModel, save_trained
 from ne_jax.train.state import init_train_state
+
+from tests.mini_presets import mini_benchmark
 
 N = 400
 BG = jnp.ones(3)
@@ -144,8 +154,7 @@ def test_models_rendered_differently_and_bad_clouds_are_refused(models):
 @pytest.fixture(scope="module")
 def run_dirs(models, tmp_path_factory):
     root = tmp_path_factory.mktemp("morph")
-    preset = BenchmarkPreset("mini", resolution=16, train_views=2, val_views=1, test_views=1, supersample=1,
-                             detail=0.3, surface_samples=500)
+    preset = mini_benchmark(resolution=16, train_views=2, detail=0.3, surface_samples=500)
     generate_scene("glossy", preset, root, seed=0)
     a, b = models
     scene = root / "glossy"

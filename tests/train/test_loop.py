@@ -14,9 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+from ne_jax.data.benchmark import generate_scene
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.pointcloud.optimise import (
     PointOptConfig,
     add_points,
@@ -24,36 +23,25 @@ from ne_jax.pointcloud.optimise import (
     scan_growth,
     select_growth,
 )
-from ne_jax.render.quadrature import QuadratureConfig
-from ne_jax.render.renderer import PointScene, RenderConfig
-from ne_jax.train import CheckpointError, SamplerConfig, TrainConfig, make_train_step, sample_batch
-from ne_jax.train.loop import InitConfig, RunConfig, load_trained, train
+from ne_jax.render.renderer import PointScene
+from ne_jax.train import CheckpointError, TrainConfig, make_train_step, sample_batch
+from ne_jax.train.loop import load_trained, train
 from ne_jax.train.sampler import build_pool
 
-MINI = BenchmarkPreset("mini", resolution=24, train_views=5, val_views=1, test_views=1, supersample=1,
-                       detail=0.4, surface_samples=2000)
-
-
-def tiny_run(**changes) -> RunConfig:
-    render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24), quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
-    init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=48, num_points=1500))
-    run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),
-                    init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
-                    epochs=3, steps_per_epoch=3, point_rounds=(1, 2), log_every=2)
-    return run.with_schedule().replace(**changes)
+from tests.mini_presets import TRAIN_SCENE, mini_run
 
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")
-    generate_scene("blocks", MINI, root, seed=0)
+    generate_scene("blocks", TRAIN_SCENE, root, seed=0)
     return root / "blocks"
 
 
 @pytest.fixture(scope="module")
 def full_run(scene_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "full"
-    return train(tiny_run(), scene_dir, out, progress=False, log=lambda s: None)
+    return train(mini_run(), scene_dir, out, progress=False, log=lambda s: None)
 
 
 def _pool(result, run):
@@ -91,10 +79,10 @@ def test_run_directory_history_and_no_recompile_within_an_epoch(full_run):
 
 def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
     out = tmp_path / "resumed"
-    first = train(tiny_run(), scene_dir, out, progress=False, log=lambda s: None, stop_after_epoch=1)
+    first = train(mini_run(), scene_dir, out, progress=False, log=lambda s: None, stop_after_epoch=1)
     assert int(first.state.step) == 3
     assert first.history[0]["compiles"] == 0  # the step compiled for full_run is reused in this process
-    second = train(tiny_run(), scene_dir, out, progress=False, log=lambda s: None)
+    second = train(mini_run(), scene_dir, out, progress=False, log=lambda s: None)
     assert [e["epoch"] for e in second.history] == [1, 2, 3]
     _same_state(second.state, full_run.state)
     np.testing.assert_array_equal(np.asarray(second.scene.points.xyz), np.asarray(full_run.scene.points.xyz))
@@ -102,11 +90,12 @@ def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
     # the recorded training time sums both sittings: the first's epoch and rounds are in the history
     h = second.history
     expected = second.initial["seconds"] + sum(e["train_seconds"] + e.get("points", {}).get("seconds", 0) for e in h)
-    assert second.recorded_seconds == pytest.approx(expected) and h[0]["train_seconds"] == first.history[0]["train_seconds"]
+    assert second.recorded_seconds == pytest.approx(expected)
+    assert h[0]["train_seconds"] == first.history[0]["train_seconds"]
 
 
 def test_resuming_a_run_of_another_config_names_the_fields(full_run, scene_dir):
-    other = tiny_run(train=TrainConfig(lr=1e-3, total_steps=9))
+    other = mini_run(train=TrainConfig(lr=1e-3, total_steps=9))
     with pytest.raises(CheckpointError, match=r"train\.lr"):
         train(other, scene_dir, full_run.run_dir, progress=False, log=lambda s: None)
 
@@ -115,7 +104,7 @@ def test_a_restart_removes_the_earlier_runs_checkpoints(full_run, scene_dir, tmp
     out = tmp_path / "again"
     shutil.copytree(full_run.run_dir, out)
     lines = []
-    again = train(tiny_run(), scene_dir, out, resume=False, progress=False, log=lines.append, stop_after_epoch=1)
+    again = train(mini_run(), scene_dir, out, resume=False, progress=False, log=lines.append, stop_after_epoch=1)
     assert int(again.state.step) == 3 and [e["epoch"] for e in again.history] == [1]
     assert any("removed the earlier run's checkpoints" in line for line in lines)
     steps = sorted(p.name for p in (out / "checkpoints").iterdir() if p.is_dir())
@@ -135,7 +124,7 @@ def test_empty_masks_fail_before_anything_is_written(scene_dir, tmp_path):
     split = load_split(scene_dir, "train")
     empty = dataclasses.replace(split, images=np.zeros_like(split.images))
     with pytest.raises(ValueError, match="no foreground"):
-        train(tiny_run(), scene_dir, tmp_path / "run", split=empty, progress=False, log=lambda s: None)
+        train(mini_run(), scene_dir, tmp_path / "run", split=empty, progress=False, log=lambda s: None)
     assert not (tmp_path / "run").exists()
 
 
@@ -145,7 +134,7 @@ def test_a_scene_with_one_view_trains(scene_dir, tmp_path):
                               image_paths=split.image_paths[:1])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = train(tiny_run(epochs=1).with_schedule(), scene_dir, tmp_path / "one", split=one, progress=False,
+        res = train(mini_run(epochs=1), scene_dir, tmp_path / "one", split=one, progress=False,
                     log=lambda s: None)
     assert any("min_views" in str(w.message) for w in caught)
     assert int(res.state.step) == 3 and np.isfinite(res.history[-1]["loss/total"])
@@ -155,7 +144,7 @@ def test_a_scene_with_one_view_trains(scene_dir, tmp_path):
 
 
 def test_growth_past_capacity_reallocates_and_the_step_runs_on_the_new_shapes(full_run):
-    run = tiny_run()
+    run = mini_run()
     points = full_run.scene.points
     free = int(points.capacity - np.asarray(points.alive).sum())
     n = free + 50
@@ -199,7 +188,7 @@ def test_select_growth_keeps_one_per_cell_by_priority():
 
 
 def test_scan_growth_candidates_lie_in_gaps_and_are_finite(full_run):
-    run = tiny_run()
+    run = mini_run()
     pool = _pool(full_run, run)
     rays = sample_batch(run.sampler, pool, jax.random.key(1)).rays
     scene = full_run.scene

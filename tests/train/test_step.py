@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
+from ne_jax.data.benchmark import generate_scene
 from ne_jax.data.nerf_synthetic import SceneSplit, composite, load_split
 from ne_jax.data.ply import read_ply
 from ne_jax.data.rays import pixel_rays
@@ -36,8 +36,9 @@ from ne_jax.train import (
     sparsity_loss,
 )
 
-MINI = BenchmarkPreset("mini", resolution=32, train_views=6, val_views=1, test_views=1, supersample=1,
-                       detail=0.5, surface_samples=3000)
+from tests.mini_presets import mini_benchmark
+
+MINI = mini_benchmark(resolution=32, train_views=6, detail=0.5, surface_samples=3000)
 RCFG = RenderConfig.tiny()
 SCFG = SamplerConfig(batch_size=512, band_width=2, band_fraction=0.1)
 TCFG = TrainConfig(total_steps=1000)
@@ -285,7 +286,8 @@ def test_every_loss_term_has_finite_gradients_at_hard_inputs(stop):
     alive = jnp.asarray([True] * 8 + [False])  # a dead slot (finite placeholder)
     values = terms(float_fields, rgb, target, logit, alive)
     for name in values:
-        g = jax.grad(lambda *a: terms(*a)[name], argnums=(0, 1, 2, 3))(float_fields, rgb, target, logit, alive)
+        g = jax.grad(lambda *a, name=name: terms(*a)[name], argnums=(0, 1, 2, 3))(float_fields, rgb, target, logit,
+                                                                                  alive)
         assert np.isfinite(float(values[name])), name
         assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(g)), name
     # zero-opacity ray contributes nothing and gets zero gradient
