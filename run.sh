@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One entry point that sets itself up on a fresh machine (Python >= 3.11), then runs:
 #   bash run.sh demo [flags]   the main job on the built-in default scene (see `ne-jax demo --help`)
+#   bash run.sh lint           the linter (ruff, configured in pyproject.toml) over the repository
 #   bash run.sh test [flags]   the test suite (flags go to pytest; NE_JAX_TEST_WORKERS=2 pytest-xdist
 #                              processes, one test file per worker at a time: one XLA:CPU program
 #                              does not fill two cores; 1 runs in-process; each on one host device,
@@ -65,6 +66,7 @@ cmd="${1:-}"
 shift
 setup
 case "$cmd" in
+  lint) exec .venv/bin/ruff check . ;;
   test)
     # Explicit paths (an argument naming a file or folder, optionally with ::test): run just those.
     for arg in "$@"; do

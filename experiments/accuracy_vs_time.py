@@ -270,7 +270,8 @@ def orbit_rays(res: int, views: int, dtype=np.float32):
     parts = [rays_through_pixels(jnp.asarray(c2w, dtype), jnp.asarray(focal, dtype), jnp.asarray(focal, dtype),
                                  jnp.asarray(0.5 * res, dtype), jnp.asarray(0.5 * res, dtype), pix, S.NEAR, S.FAR)
              for c2w in S.orbit_cameras(views)]
-    cat = lambda name: jnp.concatenate([getattr(r, name) for r in parts])
+    def cat(name):
+        return jnp.concatenate([getattr(r, name) for r in parts])
     return Rays(origin=cat("origin"), direction=cat("direction"), near=cat("near"), far=cat("far"))
 
 
@@ -361,12 +362,15 @@ def knn_study(sz: Sizes) -> dict:
             eps = jnp.float32(cfg.knn_eps_factor * float(tree.spacing))
             ref_valid = jnp.ones(ref.shape, bool)
             ref_nb = Neighbors(index=jnp.asarray(ref, jnp.int32), dist=jnp.asarray(ex_dist[:, :k], jnp.float32),
-                               valid=ref_valid, weight=knn_weights(state.conf_logit[ref], jnp.asarray(ex_dist[:, :k], jnp.float32), ref_valid, eps))
+                               valid=ref_valid, weight=knn_weights(state.conf_logit[ref],
+                                                                   jnp.asarray(ex_dist[:, :k], jnp.float32),
+                                                                   ref_valid, eps))
             ref_interp = interpolate(ref_nb, values)
             d_rand = np.abs(np.asarray(interp["random"]).reshape(-1, 8) - np.asarray(ref_interp["random"]))
             d_smooth = np.abs(np.asarray(interp["smooth"]).reshape(-1) - np.asarray(ref_interp["smooth"])[:, 0])
             e_smooth = np.abs(np.asarray(ref_interp["smooth"])[:, 0] - truth_smooth)
-            run = lambda tree=tree, cfg=cfg: knn_integrate(state, tree, points[:tb], nodes[:tb], w_seg[:tb], feat, cfg)
+            def run(tree=tree, cfg=cfg):
+                return knn_integrate(state, tree, points[:tb], nodes[:tb], w_seg[:tb], feat, cfg)
             first, best = best_time(run, sz.repeats)
             row = {"candidates": cfg.num_candidates, "k": k, "recall": float(hits.mean()),
                    "recall_p01": float(np.quantile(hits, 0.01)), "exact_fraction": float((hits == 1).mean()),
@@ -377,7 +381,8 @@ def knn_study(sz: Sizes) -> dict:
                    "samples_by_level": {str(lv): int((level == lv).sum()) for lv in np.unique(level)},
                    "ms_per_1e6_samples": round(1e3 * best * 1e6 / (tb * s), 1), "compile_s": round(first - best, 2)}
             out["rows"].append(row)
-            print(f"knn Kc={kc} K={k}: recall {row['recall']:.4f}, {row['ms_per_1e6_samples']} ms/1e6", file=sys.stderr, flush=True)
+            print(f"knn Kc={kc} K={k}: recall {row['recall']:.4f}, {row['ms_per_1e6_samples']} ms/1e6",
+                  file=sys.stderr, flush=True)
     # exact mode: cost on the same samples, and its recall against scipy (a correctness check)
     for k in sz.ks:
         cfg = base.replace(knn_k=k)
@@ -385,9 +390,11 @@ def knn_study(sz: Sizes) -> dict:
         idx = np.asarray(nb.index).reshape(-1, k)
         ref = ex_idx[: eb * s, :k]
         rec = float(hit_fraction(idx, ref).mean())
-        run = lambda cfg=cfg: knn_integrate(state, tree0, points[:eb], nodes[:eb], w_seg[:eb], feat, cfg, True)
+        def run(cfg=cfg):
+            return knn_integrate(state, tree0, points[:eb], nodes[:eb], w_seg[:eb], feat, cfg, True)
         first, best = best_time(run, sz.repeats)
-        out["exact"].append({"k": k, "recall_vs_scipy": rec, "ms_per_1e6_samples": round(1e3 * best * 1e6 / (eb * s), 1),
+        out["exact"].append({"k": k, "recall_vs_scipy": rec,
+                             "ms_per_1e6_samples": round(1e3 * best * 1e6 / (eb * s), 1),
                              "compile_s": round(first - best, 2)})
         print(f"knn exact K={k}: {out['exact'][-1]}", file=sys.stderr, flush=True)
     return out
@@ -441,7 +448,8 @@ def render_worker(dtype_name: str, sz: Sizes, model_npz: str, out_npz: str) -> N
     params = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x, dtype) for x in leaves])
     rays = orbit_rays(sz.render_res, sz.render_views, dtype)
     bg = jnp.ones(3, dtype)
-    render = lambda: render_chunked(cfg, params, scene, rays, bg, progress=False)
+    def render():
+        return render_chunked(cfg, params, scene, rays, bg, progress=False)
     out = render()  # settles capacity growth
     first, best = best_time(render, sz.repeats)
     np.savez(out_npz, rgb=np.asarray(out.rgb), opacity=np.asarray(out.opacity), depth=np.asarray(out.depth),
@@ -641,7 +649,8 @@ def summary_markdown(res: dict) -> str:
                  f"{r['exact_fraction']:.3f} | {_g(r['diff_random_mean'])} / {_g(r['diff_random_max'])} | "
                  f"{_g(r['diff_smooth_mean'])} | {_g(r['exact_smooth_err_mean'])} | {r['ms_per_1e6_samples']:.0f} |")
     for e in kn["exact"]:
-        L.append(f"| exact (brute force) | {e['k']} | {e['recall_vs_scipy']:.4f} | | | | | | {e['ms_per_1e6_samples']:.0f} |")
+        L.append(f"| exact (brute force) | {e['k']} | {e['recall_vs_scipy']:.4f} | | | | | | "
+                 f"{e['ms_per_1e6_samples']:.0f} |")
     L += ["", "#### float32 against float64", "",
           f"The same random model rendered in both precisions ({pr['preset']} preset, {pr['points']} points, "
           f"{pr['views']} view(s) at {pr['image']}).", "",
@@ -669,7 +678,8 @@ def discussion(res: dict) -> list[str]:
     o = {r: q["rules"][r]["order"] for r in rules}
     i22 = s_vals.index(22) if 22 in s_vals else len(s_vals) - 1
     i8 = s_vals.index(8) if 8 in s_vals else 0
-    err = lambda r, k, i: quadrature_error(q, r, k)[i]
+    def err(r, k, i):
+        return quadrature_error(q, r, k)[i]
     t = {r: q["rules"][r]["ms_per_1e5_segments"] for r in rules}
     det = [r for r in rules if r != "stochastic"]
     det_t = [t[r][i22] for r in det]
@@ -799,7 +809,8 @@ def main(argv=None) -> int:
     ap.add_argument("--render-worker", nargs=3, metavar=("DTYPE", "MODEL", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--sizes-json", help=argparse.SUPPRESS)
     ap.add_argument("--run", type=Path, help="--study image: a trained run directory (required)")
-    ap.add_argument("--edit", default="bend", help="--study image: the benchmark edit (ground truth <scene>/edits/<edit>)")
+    ap.add_argument("--edit", default="bend",
+                    help="--study image: the benchmark edit (ground truth <scene>/edits/<edit>)")
     ap.add_argument("--scene", type=Path, help="--study image: the scene folder, if not the one the run recorded; "
                                                "--study training: the scene to train on (required)")
     ap.add_argument("--test-views", type=int, metavar="N",
@@ -810,7 +821,8 @@ def main(argv=None) -> int:
                     help="--study training: the training preset whose candidates are trained (tiny, default or "
                          "paper); --summary-only: whose results are rewritten (for --study image: the name of "
                          "the model's run config)")
-    ap.add_argument("--runs", type=Path, help="--study training: folder of the cached runs (default runs/avt_training/<scene>)")
+    ap.add_argument("--runs", type=Path,
+                    help="--study training: folder of the cached runs (default runs/avt_training/<scene>)")
     ap.add_argument("--candidates", choices=("full", "short"),
                     help="--study training: which candidates (default: full for tiny, short for the hour-long presets)")
     ap.add_argument("--train-only", type=int, nargs="+", metavar="I",

@@ -202,7 +202,8 @@ def settings_for(own, sz: ImageSizes) -> list[Setting]:
         if k <= nc:
             out.append(Setting("k", f"K={k}", k, own.replace(tree=t.replace(knn_k=k))))
     for c in sz.candidate_scales:
-        out.append(Setting("candidates", f"candidates={c * nc}", c * nc, own.replace(tree=t.replace(candidate_min=c * nc))))
+        out.append(Setting("candidates", f"candidates={c * nc}", c * nc,
+                           own.replace(tree=t.replace(candidate_min=c * nc))))
     for d in sz.level_deltas:
         lv = t.num_render_levels + d
         if lv >= 1:
@@ -424,7 +425,8 @@ def knob_paragraphs(res: dict) -> list[str]:
             best = max(rows, key=lambda r: r["psnr"])
             cheap = min(rows, key=lambda r: r["ms_per_image"])
             on = [r["label"] for r in rows if r["on_front"]]
-            notes.append(f"{t['target']}: best {best['label']} ({best['d_psnr']:+.2f} dB at {best['time_ratio']:.2f}x), "
+            notes.append(f"{t['target']}: best {best['label']} ({best['d_psnr']:+.2f} dB at "
+                         f"{best['time_ratio']:.2f}x), "
                          f"cheapest {cheap['label']} ({cheap['d_psnr']:+.2f} dB at {cheap['time_ratio']:.2f}x); "
                          + (f"on the front: {', '.join(on)}" if on else "none on the front"))
         if parts:
@@ -491,7 +493,8 @@ def summary_markdown(res: dict) -> str:
               "|---|---|---:|---:|---:|---:|---:|" + ("---:|" if grows else "") + "---|"]
         for r in t["rows"]:
             note = f" (= {r['same_as']})" if "same_as" in r else (" (time only)" if r["time_only"] else "")
-            L.append(f"| {r['label']}{note} | {r['knob']} | {_f(r['psnr'])} | {r['ssim']:.4f} | {r['ms_per_image']:.0f} | "
+            L.append(f"| {r['label']}{note} | {r['knob']} | {_f(r['psnr'])} | {r['ssim']:.4f} | "
+                     f"{r['ms_per_image']:.0f} | "
                      f"{r['compile_s']:.1f} | {r['lost_segments']} |" + (f" {r['overflow_rays']} |" if grows else "")
                      + f" {'yes' if r['on_front'] else ''} |")
         L += ["", "</details>", ""]

@@ -108,7 +108,8 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
     two = t.replace(first_pass_frontier=narrow.frontier_capacity, retry_share=TWO_PASS_SHARE)
     two_pass = [] if two == t else [  # a preset that walks this way already has no such candidate
         Candidate(f"two-pass frontier ({two.first_pass_frontier} then {t.frontier_capacity}, "
-                  f"retry share 1/{round(1 / TWO_PASS_SHARE)})", "two-pass", run.replace(render=run.render.replace(tree=two)))]
+                  f"retry share 1/{round(1 / TWO_PASS_SHARE)})", "two-pass",
+                  run.replace(render=run.render.replace(tree=two)))]
     if quick:
         return [Candidate("own", "own", run), Candidate(f"K={max(1, t.knn_k // 2)}", "k", with_k(max(1, t.knn_k // 2)))]
     out = [Candidate("own", "own", run), Candidate("own, seed 1", "seed", run.replace(seed=run.seed + 1))]
@@ -120,8 +121,9 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         paper_tree, paper_q = KDTreeConfig.default(), QuadratureConfig()
         if (t, q) != (paper_tree, paper_q):
             paper = run.replace(render=run.render.replace(tree=paper_tree, quadrature=paper_q))
-            label = f"paper sampling (K={paper_tree.knn_k}, {paper_tree.candidate_min} candidates, " \
-                    f"{paper_tree.num_render_levels} levels, s {paper_q.samples_per_level[:paper_tree.num_render_levels]})"
+            levels = paper_tree.num_render_levels
+            label = (f"paper sampling (K={paper_tree.knn_k}, {paper_tree.candidate_min} candidates, "
+                     f"{levels} levels, s {paper_q.samples_per_level[:levels]})")
             out.append(Candidate(label, "paper", paper))
             out.append(Candidate("paper sampling, steps x0.25", "paper",
                                  paper.with_schedule(steps_per_epoch=max(1, run.steps_per_epoch // 4))))
@@ -344,7 +346,8 @@ def _write(out_dir: Path, stem: str, res: dict, markdown: str, **plot_args) -> N
 
 def _preset_key(study: dict) -> str | None:
     """The config hash of the study's preset (older results: the name of its own run directory)."""
-    return study.get("preset_key") or (Path(study["rows"][0]["run_dir"]).name if "run_dir" in study["rows"][0] else None)
+    first = study["rows"][0]
+    return study.get("preset_key") or (Path(first["run_dir"]).name if "run_dir" in first else None)
 
 
 def scene_results(out_dir: Path, preset: str, key: str | None = None) -> list[dict]:
@@ -405,7 +408,8 @@ def combined_markdown(res: dict) -> str:
          "config; dPSNR is against the preset on the same scene, time ratios against the preset's on the same "
          "scene, then averaged over the scenes. Per-scene tables: "
          + ", ".join(f"`{_stem(res['preset'], s)}.md`" for s in scenes) + ".", "",
-         "| candidate | " + " | ".join(f"d {s}" for s in scenes) + " | mean dPSNR | train / own | image / own | fronts |",
+         "| candidate | " + " | ".join(f"d {s}" for s in scenes)
+         + " | mean dPSNR | train / own | image / own | fronts |",
          "|---|" + "---:|" * (len(scenes) + 3) + "---|"]
     for i, r in enumerate(rows):
         L.append(f"| {r['label']} | " + " | ".join(f"{d:+.2f}" for d in r["per_scene_db"])
@@ -498,6 +502,6 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     return res
 
 
-__all__ = ["BUDGET", "CANDIDATE_SETS", "Candidate", "candidates_for", "choose_preset", "combine_scenes", "combined_markdown",
-           "config_key", "is_finished", "library_fingerprint", "rewrite_summary", "run_training", "scene_results",
-           "score_key", "summary_markdown", "SCORE_FILE"]
+__all__ = ["BUDGET", "CANDIDATE_SETS", "Candidate", "candidates_for", "choose_preset", "combine_scenes",
+           "combined_markdown", "config_key", "is_finished", "library_fingerprint", "rewrite_summary", "run_training",
+           "scene_results", "score_key", "summary_markdown", "SCORE_FILE"]

@@ -63,7 +63,8 @@ def settings(quick: bool) -> list[tuple[str, object]]:
                 ("default, paper sampling", d.replace(render=d.render.replace(tree=paper_sampling.tree,
                                                                               quadrature=paper_sampling.quadrature)))]
     p = RunConfig.paper()
-    out.append(("paper, 32 segment slots", p.replace(render=p.render.replace(tree=p.render.tree.replace(max_segments=32)))))
+    out.append(("paper, 32 segment slots",
+                p.replace(render=p.render.replace(tree=p.render.tree.replace(max_segments=32)))))
     return [s for s in out if s[0] in ("tiny", REFERENCE)] if quick else out
 
 
@@ -138,7 +139,8 @@ def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, q
         cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
         image = functools.partial(render_image, cfg, model.state.params, scene, camera, bg, near, far, progress=False)
         first, t_img = best_time(lambda image=image: jax.block_until_ready(image().rgb), repeats)
-        report, _ = evaluate_split(run.render, model.state.params, scene, view0, run.background, near, far, progress=False)
+        report, _ = evaluate_split(run.render, model.state.params, scene, view0, run.background, near, far,
+                                   progress=False)
         row.update({"ms_per_image": round(1e3 * t_img, 1), "image_compile_s": round(max(0.0, first - t_img), 2),
                     "psnr_view0": round(float(report["psnr"]), 2)})
         rows.append(row)
@@ -175,7 +177,8 @@ def markdown(res: dict) -> str:
                  f"{r['ms_per_step']:.1f} | {r['us_per_ray']:.2f} | {r['step_ratio']:.2f} | "
                  f"{r['lost_to_capacity']} / {r['lost_to_budget']} | {r['first_batch']['mean_segments']:.1f}, "
                  f"{r['first_batch']['rays_at_max_segments']} | "
-                 f"{r['total_steps']} | {r['projected_train_min']:.1f} | {r['ms_per_image']:.0f} | {r['image_ratio']:.2f} | "
+                 f"{r['total_steps']} | {r['projected_train_min']:.1f} | {r['ms_per_image']:.0f} | "
+                 f"{r['image_ratio']:.2f} | "
                  f"{r['psnr_view0']:.2f} |")
     return "\n".join(L) + "\n"
 
@@ -194,8 +197,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--run {args.run}: expected a trained run directory, found nothing")
     if args.steps < 1:
         raise SystemExit(f"--steps: expected at least 1, found {args.steps}")
-    res = run_bench(args.run, args.scene, 2 if args.quick else args.steps, 1 if args.quick else args.repeats, args.quick,
-                    log=lambda s: print(s, file=sys.stderr, flush=True), only=args.settings)
+    res = run_bench(args.run, args.scene, 2 if args.quick else args.steps, 1 if args.quick else args.repeats,
+                    args.quick, log=lambda s: print(s, file=sys.stderr, flush=True), only=args.settings)
     res["command"] = "python experiments/bench_presets.py " + " ".join(argv if argv is not None else sys.argv[1:])
     write_bench(args.out_dir, f"bench_presets_{device_tag()}", res, markdown(res))
     return 0

@@ -91,7 +91,8 @@ def main(argv=None) -> None:
         scene = PointScene.build(clouds[n], cfg)
         build = time.perf_counter() - t0
         r = time_render(cfg, scene, args.repeats)
-        rows.append({"setting": f"preset {preset}", "points": n, "depth": scene.tree.depth, "build_s": round(build, 2), **r})
+        rows.append({"setting": f"preset {preset}", "points": n, "depth": scene.tree.depth,
+                     "build_s": round(build, 2), **r})
         print(rows[-1], flush=True)
         if preset == "default":
             base = cfg
@@ -126,7 +127,8 @@ def main(argv=None) -> None:
 
     print(f"\n{device}, jax {jax.__version__}, {RES}x{RES} images\n")
     base_cpu = next(r["cpu_ms_per_image"] for r in rows if r["setting"] == "preset default")
-    print("| setting | points | ms / image | rays / s | CPU ms / image | vs default (CPU) | first call s | segments / ray |")
+    print("| setting | points | ms / image | rays / s | CPU ms / image | vs default (CPU) | first call s "
+          "| segments / ray |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['setting']} | {r['points']:,} | {r['ms_per_image']:.0f} | {r['rays_per_s']:,} | "

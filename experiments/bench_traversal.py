@@ -162,10 +162,11 @@ def markdown(res: dict) -> str:
          "max abs RGB diff | ms / step | step / ref | training: segments lost | max abs param diff |",
          "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
-        train = (f"{r['ms_per_step']:.0f} | {r['step_ratio']:.2f} | {r['train_segments_lost']} | {r['max_abs_param_diff']:.1e}"
-                 if "ms_per_step" in r else "| | |")
+        train = (f"{r['ms_per_step']:.0f} | {r['step_ratio']:.2f} | {r['train_segments_lost']} | "
+                 f"{r['max_abs_param_diff']:.1e}" if "ms_per_step" in r else "| | |")
         L.append(f"| {r['label']} | {r['rays_per_s']} | {r['walk_ratio']:.2f} | {r['rays_losing_segments']} | "
-                 f"{'yes' if r['segments_equal_reference'] else 'no'} | {r['ms_per_image']:.0f} | {r['image_ratio']:.2f} | "
+                 f"{'yes' if r['segments_equal_reference'] else 'no'} | {r['ms_per_image']:.0f} | "
+                 f"{r['image_ratio']:.2f} | "
                  f"{r['max_abs_rgb_diff']:.1e} | {train} |")
     return "\n".join(L) + "\n"
 
@@ -182,8 +183,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not args.run.is_dir():
         raise SystemExit(f"--run {args.run}: expected a trained run directory, found nothing")
-    res = run_bench(args.run, args.scene, 1 if args.quick else args.views, 1 if args.quick else args.repeats, args.quick,
-                    min(args.train_steps, 2) if args.quick else args.train_steps,
+    res = run_bench(args.run, args.scene, 1 if args.quick else args.views, 1 if args.quick else args.repeats,
+                    args.quick, min(args.train_steps, 2) if args.quick else args.train_steps,
                     log=lambda s: print(s, file=sys.stderr, flush=True))
     res["command"] = "python experiments/bench_traversal.py " + " ".join(argv if argv is not None else sys.argv[1:])
     tag = device_tag()

@@ -279,7 +279,8 @@ def mitsuba_scene(mi, edited: S.EditedMesh, materials, c2w: np.ndarray, res: int
         d = np.asarray(light.direction, float)
         d /= np.linalg.norm(d)
         # The ray caster adds intensity * albedo * cos; a diffuse BSDF gives albedo / pi * E * cos.
-        scene[f"sun{k}"] = {"type": "directional", "direction": (-d).tolist(), "irradiance": {"type": "rgb", "value": [math.pi * light.intensity] * 3}}
+        scene[f"sun{k}"] = {"type": "directional", "direction": (-d).tolist(),
+                            "irradiance": {"type": "rgb", "value": [math.pi * light.intensity] * 3}}
         # (Mitsuba has no unshadowed light; LIGHTS[2], the dim fill light, casts shadows here.)
     return mi.load_dict(scene)
 
@@ -302,7 +303,8 @@ def mitsuba_render(mi, scene, spp: int, seed: int) -> tuple[np.ndarray, float, i
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=RESULTS, help="output folder (default: experiments/results)")
     p.add_argument("--variant", choices=("auto", "scalar_rgb", "llvm_ad_rgb"), default="auto",
                    help="Mitsuba variant; auto = llvm_ad_rgb only where libLLVM >= 16 is found, else scalar_rgb")
@@ -488,13 +490,15 @@ def main(argv=None) -> int:
             "ms_per_image": ((total_images - test_images) * ms_lo + test_images * ms_hi) / total_images,
             "cpu_ms_per_image": float("nan"),
             "psnr_vs_converged": float("nan"), "psnr_object_vs_converged": float("nan"),
-            "psnr_seed_vs_seed": float("nan"), "deterministic": all(s["deterministic"] for s in summary if s["renderer"].startswith("Mitsuba")),
+            "psnr_seed_vs_seed": float("nan"),
+            "deterministic": all(s["deterministic"] for s in summary if s["renderer"].startswith("Mitsuba")),
             "converged_means": "see the two rows above", "preset_minutes": mixed,
         })
 
     cross = {
         "alpha_iou_min": min(r["cross"]["alpha_iou"] for r in results),
-        "psnr_raycaster_vs_mitsuba_reference": mean_db([r["cross"]["psnr_raycaster_vs_mitsuba_reference"] for r in results]),
+        "psnr_raycaster_vs_mitsuba_reference": mean_db([r["cross"]["psnr_raycaster_vs_mitsuba_reference"]
+                                                        for r in results]),
     }
     wall = time.perf_counter() - t_all
     load_after = os.getloadavg()
@@ -505,7 +509,8 @@ def main(argv=None) -> int:
               "seed-to-seed PSNR, dB (whole / object) | deterministic | `default` preset, min |")
     lines = [header, "|---|---|---:|---:|---|---|---|---:|"]
     for s in summary:
-        vs = "-" if math.isnan(s["psnr_vs_converged"]) else f"{fmt_db(s['psnr_vs_converged'])} / {fmt_db(s['psnr_object_vs_converged'])}"
+        vs = ("-" if math.isnan(s["psnr_vs_converged"])
+              else f"{fmt_db(s['psnr_vs_converged'])} / {fmt_db(s['psnr_object_vs_converged'])}")
         if s["renderer"].startswith("Open3D"):
             seed = "n/a (no randomness)"
             vs += f" (vs ss={ref_ss}: aliasing, no noise)"
@@ -517,28 +522,38 @@ def main(argv=None) -> int:
         if s["renderer"].startswith("Mitsuba") and s["deterministic"]:
             det = "yes for a fixed seed"
         cpu_ms = "-" if math.isnan(s["cpu_ms_per_image"]) else f"{s['cpu_ms_per_image']:.0f}"
-        lines.append(f"| {s['renderer']} | {s['setting']} | {s['ms_per_image']:.0f} | {cpu_ms} | {vs} | {seed} | {det} | {s['preset_minutes']:.1f} |")
+        lines.append(f"| {s['renderer']} | {s['setting']} | {s['ms_per_image']:.0f} | {cpu_ms} | {vs} | {seed} | "
+                     f"{det} | {s['preset_minutes']:.1f} |")
     per_scene = ["", "| scene | faces | " + " | ".join(f"RC ss={ss} ms" for ss in ss_list) + " | "
-                 + " | ".join(f"MI {spp} spp ms (object PSNR vs ref)" for spp in spp_list) + f" | MI {ref_spp} spp s | silhouette IoU |",
+                 + " | ".join(f"MI {spp} spp ms (object PSNR vs ref)" for spp in spp_list)
+                 + f" | MI {ref_spp} spp s | silhouette IoU |",
                  "|---|---:|" + "---:|" * len(ss_list) + "---|" * len(spp_list) + "---:|---:|"]
     for r in results:
         label = r["scene"] + (f"/{r['edit']}" if r["edit"] else "")
-        per_scene.append(f"| {label} | {r['faces']} | " + " | ".join(f"{r['raycaster'][ss]['ms_per_image']:.0f}" for ss in ss_list)
-                         + " | " + " | ".join(f"{r['mitsuba'][spp]['ms_per_image']:.0f} ({fmt_db(r['mitsuba'][spp]['psnr_object_vs_reference'])})" for spp in spp_list)
+        mits = [f"{r['mitsuba'][spp]['ms_per_image']:.0f} ({fmt_db(r['mitsuba'][spp]['psnr_object_vs_reference'])})"
+                for spp in spp_list]
+        per_scene.append(f"| {label} | {r['faces']} | "
+                         + " | ".join(f"{r['raycaster'][ss]['ms_per_image']:.0f}" for ss in ss_list)
+                         + " | " + " | ".join(mits)
                          + f" | {r['mitsuba_reference']['seconds']:.1f} | {r['cross']['alpha_iou']:.3f} |")
     md = "\n".join([
-        f"# Ground-truth renderers compared ({res}x{res}, {os.cpu_count()} CPU cores, Mitsuba {mi.__version__} `{variant}`)",
+        f"# Ground-truth renderers compared ({res}x{res}, {os.cpu_count()} CPU cores, "
+        f"Mitsuba {mi.__version__} `{variant}`)",
         "",
         f"Variant: `{variant}` -- {reason}.",
         "",
         *lines,
         "",
-        (f"`default` preset: {total_images} images ({n_scenes} scenes x (original {originals} + {n_edits} edits x {edited_views})), "
+        (f"`default` preset: {total_images} images ({n_scenes} scenes x (original {originals} + {n_edits} edits x "
+        f"{edited_views})), "
         f"{n_variants} meshes; the projection adds the per-mesh set-up time "
-        f"(ray caster {rc_build:.2f} s, Mitsuba {mi_build:.2f} s). Mitsuba reference ({ref_spp} spp): {ref_ms / 1000:.1f} s per image."),
+        f"(ray caster {rc_build:.2f} s, Mitsuba {mi_build:.2f} s). Mitsuba reference ({ref_spp} spp): "
+        f"{ref_ms / 1000:.1f} s per image."),
         "",
-        (f"Cross-renderer (different shading models, for information): silhouette IoU >= {cross['alpha_iou_min']:.3f}, "
-        f"PSNR ray caster ss={max(ss_list)} vs Mitsuba reference {cross['psnr_raycaster_vs_mitsuba_reference']:.1f} dB."),
+        ("Cross-renderer (different shading models, for information): silhouette IoU >= "
+        f"{cross['alpha_iou_min']:.3f}, "
+        f"PSNR ray caster ss={max(ss_list)} vs Mitsuba reference "
+        f"{cross['psnr_raycaster_vs_mitsuba_reference']:.1f} dB."),
         *per_scene,
         "",
         (f"Whole run: {wall:.0f} s; load average {load_before[0]:.1f} before, {load_after[0]:.1f} after "
@@ -570,7 +585,8 @@ def main(argv=None) -> int:
     from PIL import Image, ImageDraw
 
     rows = [lab for lab in ("glossy/bend", "blocks") if (lab, "mi_ref") in images]
-    cols = [(f"rc{max(ss_list)}", f"ray caster ss={max(ss_list)}"), (f"mi{min(spp_list)}", f"Mitsuba {min(spp_list)} spp"),
+    cols = [(f"rc{max(ss_list)}", f"ray caster ss={max(ss_list)}"),
+            (f"mi{min(spp_list)}", f"Mitsuba {min(spp_list)} spp"),
             ("mi_ref", f"Mitsuba {ref_spp} spp")]
     pad, top = 4, 14
     sheet = Image.new("RGB", (len(cols) * (res + pad) + pad, len(rows) * (res + top + pad) + pad), "white")

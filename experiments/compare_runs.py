@@ -56,7 +56,8 @@ def main(argv=None) -> int:
     epochs = [json.loads((r / "metrics.json").read_text())["epochs"] for r in args.runs]
     print("epoch | train PSNR A | train PSNR B | s A | s B")
     for ea, eb in zip(*epochs):
-        print(f"{ea['epoch']} | {ea['psnr']:.4f} | {eb['psnr']:.4f} | {ea['train_seconds']:.0f} | {eb['train_seconds']:.0f}")
+        print(f"{ea['epoch']} | {ea['psnr']:.4f} | {eb['psnr']:.4f} | {ea['train_seconds']:.0f} | "
+              f"{eb['train_seconds']:.0f}")
     sa, sb = (sum(e["train_seconds"] for e in ep) for ep in epochs)
     print(f"training seconds: A {sa:.0f}, B {sb:.0f}, B / A = {sb / sa:.3f}")
     return 0 if same else 1

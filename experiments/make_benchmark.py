@@ -67,7 +67,8 @@ def main(argv=None) -> None:
     print("|---|---|---|---|---|---|---|---|")
     for name, r in rows.items():
         print(f"| {name} | {r['resolution']}x{r['resolution']} | {r['supersample']}x{r['supersample']} | "
-              f"{r['scenes']} x {r['variants_per_scene']} | {r['images']} | {r['seconds']:.1f} s | {r['ms_per_image']:.0f} ms | {r['megabytes']:.0f} MB |")
+              f"{r['scenes']} x {r['variants_per_scene']} | {r['images']} | {r['seconds']:.1f} s | "
+              f"{r['ms_per_image']:.0f} ms | {r['megabytes']:.0f} MB |")
     print(f"\nmachine: {machine}; results in {out}")
 
 

@@ -17,6 +17,7 @@ Writes ``experiments/results/morph_matching.{json,md}``.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import platform
 import sys
@@ -30,6 +31,7 @@ from scipy.spatial.distance import cdist
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from ne_jax.atomic import atomic_write_json, atomic_write_text  # noqa: E402
 from ne_jax.morph.matching import kd_match  # noqa: E402
+
 from tests.morph.test_matching import reference_match  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -53,21 +55,22 @@ def main(argv=None) -> None:
     for e in range(10, 17 if args.quick else 21, 2):
         n = 2 ** e
         a, b = rng.random((n, 3)), 0.3 * rng.normal(size=(n, 3))
-        t_kd, perm = best_of(lambda: kd_match(a, b), 3 if n <= 2 ** 16 else 1)
+        t_kd, perm = best_of(functools.partial(kd_match, a, b), 3 if n <= 2 ** 16 else 1)
         row = {"n": n, "kd_seconds": round(t_kd, 4)}
         if n <= 2 ** 14:
-            t_ref, ref = best_of(lambda: reference_match(a, b), 1)
+            t_ref, ref = best_of(functools.partial(reference_match, a, b), 1)
             row.update(reference_seconds=round(t_ref, 4), speedup=round(t_ref / t_kd, 1),
                        same_pairs=bool(np.array_equal(ref, perm)))
         if n <= 2 ** 11:
-            t_opt, (_, cols) = best_of(lambda: linear_sum_assignment(cdist(a, b, "sqeuclidean")), 1)
+            t_opt, (_, cols) = best_of(lambda a=a, b=b: linear_sum_assignment(cdist(a, b, "sqeuclidean")), 1)
             kd_cost = float(np.mean(np.sum((a - b[perm]) ** 2, axis=1)))
             opt_cost = float(np.mean(np.sum((a - b[cols]) ** 2, axis=1)))
             row.update(optimal_seconds=round(t_opt, 4), cost_over_optimal=round(kd_cost / opt_cost, 3))
         rows.append(row)
         print(row, flush=True)
     report = {"what": "K-D-tree matching of a unit cube's volume and a Gaussian blob (sigma 0.3), N points each",
-              "rows": rows, "command": "python experiments/morph_matching_benchmark.py" + (" --quick" if args.quick else ""),
+              "rows": rows,
+              "command": "python experiments/morph_matching_benchmark.py" + (" --quick" if args.quick else ""),
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}}
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / "morph_matching.json", report)

@@ -42,7 +42,8 @@ def model_for(runs: Path, root: Path, scene: str, run) -> TrainedModel:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", required=True, help="the deformation benchmark's runs folder (models reused)")
-    parser.add_argument("--root", default=None, help="benchmark folder (default: <runs>/benchmark, generated if missing)")
+    parser.add_argument("--root", default=None,
+                        help="benchmark folder (default: <runs>/benchmark, generated if missing)")
     parser.add_argument("--preset", default="tiny", choices=["tiny", "default"])
     parser.add_argument("--a", default="glossy", choices=list(SCENES))
     parser.add_argument("--b", default="stool", choices=list(SCENES))
@@ -70,7 +71,8 @@ def main(argv=None) -> None:
         print(f"{v:>15}: frame-to-frame change mean {sm['mean']:.4f} max {sm['max']:.4f}, "
               f"path ratio {sm['path_ratio']:.2f} ({report['seconds']:.0f} s)", flush=True)
 
-    command = f"python experiments/morph_study.py --runs DIR --a {args.a} --b {args.b} --steps {args.steps} --view {args.view}"
+    command = (f"python experiments/morph_study.py --runs DIR --a {args.a} --b {args.b} --steps {args.steps} "
+               f"--view {args.view}")
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / f"{name}.json", {
         "what": "morph of two trained benchmark scenes, ours vs PointNeRF-like: frame-to-frame image change",
@@ -81,7 +83,7 @@ def main(argv=None) -> None:
              f"`{args.a}`; straight-line path along the K-D matching). Re-run: `{command}`.", "",
              "| variant | mean frame change | max frame change | path ratio | end change | matched points | seconds |",
              "|---|---:|---:|---:|---:|---:|---:|"]
-    for v, r in results.items():
+    for r in results.values():
         sm = r["smoothness"]
         lines.append(f"| {r['label']} | {sm['mean']:.4f} | {sm['max']:.4f} | {sm['path_ratio']:.2f} | "
                      f"{sm['end_change']:.4f} | {r['points']['matched']} | {r['seconds']:.0f} |")

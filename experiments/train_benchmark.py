@@ -118,7 +118,8 @@ def main(argv=None) -> None:
             print(f"== {name}", flush=True)
             scenes[name] = run_scene(root / name, run, runs / name, args.progress, args.resume)
             print(json.dumps(scenes[name]), flush=True)
-            text = write_results(args.preset, run, scenes, args.results)  # after every scene: a long run keeps what it has
+            # after every scene: a long run keeps what it has
+            text = write_results(args.preset, run, scenes, args.results)
     print(text)
 
 
@@ -139,7 +140,8 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
                 "Chamfer distance (world units, mean of both directions) of the initial and the final cloud "
                 "to the ground-truth surface samples; the seen-surface Chamfer takes the completeness over "
                 "only the samples a training camera sees (seen_share of them; ne_jax.data.benchmark."
-                "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it (initial cloud, epochs with "
+                "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it "
+                "(initial cloud, epochs with "
                 "their compiles, point-cloud rounds; summed over the sittings of a resumed run)",
         "preset": preset, "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
         "batch_size": run.sampler.batch_size, "background": run.background,
@@ -154,8 +156,9 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
              "Chamfer initial -> final | ratio | seen-surface Chamfer initial -> final | ratio |",
              "|---|---:|---:|---:|---|---|---:|---|---:|"]
     for name, s in scenes.items():
-        seen = (f"{s['chamfer_seen_initial']:.4f} -> {s['chamfer_seen_final']:.4f} ({100 * s['seen_share']:.0f}% seen) | "
-                f"{s['chamfer_seen_ratio']:.2f}" if "chamfer_seen_ratio" in s else "not measured | -")
+        seen = (f"{s['chamfer_seen_initial']:.4f} -> {s['chamfer_seen_final']:.4f} "
+                f"({100 * s['seen_share']:.0f}% seen) | {s['chamfer_seen_ratio']:.2f}"
+                if "chamfer_seen_ratio" in s else "not measured | -")
         lines.append(f"| {name} | {s['test_psnr']:.2f} | {s['test_ssim']:.3f} | {s['train_seconds']:.0f} | "
                      f"{s['initial_points']} -> {s['final_points']} | {s['chamfer_initial']:.4f} -> "
                      f"{s['chamfer_final']:.4f} | {s['chamfer_ratio']:.2f} | {seen} |")

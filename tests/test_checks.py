@@ -57,7 +57,8 @@ def test_stage_check_unit():
         g(x)
     assert str(info.value).startswith("non-finite value at stage 'demo': a[shape (2, 2)] first at flat index 3 = inf")
     # pytree leaves named by path, the index relative to the first bad leaf
-    with pytest.raises(NonFiniteError, match=r"stage 'demo': tree\['q'\]\[shape \(2, 2\)\] first at flat index 3 = inf"):
+    with pytest.raises(NonFiniteError,
+                       match=r"stage 'demo': tree\['q'\]\[shape \(2, 2\)\] first at flat index 3 = inf"):
         checked(lambda a: stage_check(True, "demo", tree={"p": a[0], "q": a}))(x)
     # masked slots are not checked
     np.testing.assert_array_equal(checked(lambda a: (stage_check(True, "m", where=mask, a=a), a)[1])(x), x)

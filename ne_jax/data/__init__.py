@@ -4,7 +4,6 @@ from ne_jax.data.rays import Camera, Rays, camera_rays, pixel_rays
 
 __all__ = ["Camera", "Rays", "camera_rays", "pixel_rays"]
 
-from ne_jax.data.png import DataError, read_image, write_image
 from ne_jax.data.nerf_synthetic import (
     SceneSplit,
     composite,
@@ -16,6 +15,7 @@ from ne_jax.data.nerf_synthetic import (
     view_rays,
     write_split,
 )
+from ne_jax.data.png import DataError, read_image, write_image
 
 __all__ += [
     "DataError",

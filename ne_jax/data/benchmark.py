@@ -119,7 +119,8 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
                 "seed": seed,
                 "near": S.NEAR,
                 "far": S.FAR,
-                "renderer": "open3d RaycastingScene, two-sided Blinn-Phong, 2 shadowed directional lights, sky reflection",
+                "renderer": ("open3d RaycastingScene, two-sided Blinn-Phong, 2 shadowed directional lights, "
+                             "sky reflection"),
             }
             if edit is not None and edit.rigid is not None:
                 meta["rigid"] = [list(row) for row in edit.rigid]

@@ -32,10 +32,10 @@ class TriMesh:
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
 
-    def with_material(self, material_id: int) -> "TriMesh":
+    def with_material(self, material_id: int) -> TriMesh:
         return TriMesh(self.vertices, self.faces, np.full(self.num_faces, material_id, np.int32))
 
-    def translated(self, offset) -> "TriMesh":
+    def translated(self, offset) -> TriMesh:
         return TriMesh(self.vertices + np.asarray(offset, np.float64), self.faces, self.material)
 
 
@@ -204,7 +204,8 @@ def sphere(radius: float, segments: int, max_edge: float, cut_z: float | None = 
     return lathe(loop, segments, max_edge, cut).translated(center)
 
 
-def cylinder(radius: float, z0: float, z1: float, segments: int, max_edge: float, cut_z=None, axis_xy=(0.0, 0.0)) -> TriMesh:
+def cylinder(radius: float, z0: float, z1: float, segments: int, max_edge: float, cut_z=None,
+             axis_xy=(0.0, 0.0)) -> TriMesh:
     """A closed cylinder between heights ``z0 < z1`` with flat caps, optionally pre-cut."""
     loop = [
         Piece(np.array([[0.0, z0], [radius, z0]])),

@@ -30,7 +30,7 @@ class Rays:
     def num_rays(self) -> int:
         return self.origin.shape[0]
 
-    def take(self, index) -> "Rays":
+    def take(self, index) -> Rays:
         """Rays selected by ``index`` (a slice, an index array or a mask) along the ray axis."""
         return jax.tree_util.tree_map(lambda a: a[index], self)
 
@@ -49,7 +49,7 @@ class Camera:
     height: int = struct.field(pytree_node=False)
 
     @classmethod
-    def from_fov(cls, c2w, width: int, height: int, camera_angle_x: float) -> "Camera":
+    def from_fov(cls, c2w, width: int, height: int, camera_angle_x: float) -> Camera:
         """NeRF Synthetic intrinsics: ``fx = fy = 0.5 W / tan(camera_angle_x / 2)``, centred."""
         focal = 0.5 * width / math.tan(0.5 * float(camera_angle_x))
         return cls(
@@ -62,7 +62,7 @@ class Camera:
             height=int(height),
         )
 
-    def scaled(self, factor: int) -> "Camera":
+    def scaled(self, factor: int) -> Camera:
         """The same camera for an image downscaled by the integer ``factor`` (size floored)."""
         return self.replace(
             fx=self.fx / factor,

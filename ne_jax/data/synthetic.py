@@ -36,8 +36,8 @@ glossy    specular parts: a glossy sphere, a gold ring around it, a glossy cube 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -327,7 +327,8 @@ def truth_cameras(edit: D.Edit | None, c2ws: np.ndarray) -> np.ndarray:
     if edit is None or not edit.moves_environment:
         return c2ws
     if edit.matrix is None:
-        raise ValueError(f"edit {edit.name!r}: moves_environment needs a whole-scene rigid motion (edit.rigid), found none")
+        raise ValueError(f"edit {edit.name!r}: moves_environment needs a whole-scene rigid motion (edit.rigid), "
+                         "found none")
     return np.linalg.inv(edit.matrix) @ c2ws
 
 

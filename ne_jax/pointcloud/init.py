@@ -141,7 +141,8 @@ class Views:
         if rgb is not None:
             rgb = np.asarray(rgb, np.float32)
             if rgb.shape != alpha.shape + (3,):
-                raise ValueError(f"rgb: expected shape {alpha.shape + (3,)} like alpha plus 3 channels, found {rgb.shape}")
+                raise ValueError(f"rgb: expected shape {alpha.shape + (3,)} like alpha plus 3 channels, "
+                                 f"found {rgb.shape}")
             if not np.isfinite(rgb).all():
                 raise ValueError("rgb: expected finite values, found NaN/inf")
         return cls(alpha, c2w, float(fx), float(fy), float(cx), float(cy), rgb)
@@ -365,14 +366,16 @@ def _outward(occupied: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.where(norm > 0, out / np.maximum(norm, 1e-12), 0.0)
 
 
-def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, dict]:
+def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray,
+                      size: np.ndarray) -> tuple[np.ndarray, dict]:
     """Remove photo-inconsistent shell voxels for ``cfg.photo_iters`` sweeps (or until none is).
 
     Per sweep: the shell voxels' centres are z-buffered per view (:func:`visibility`, pixels about
     two voxels wide, 1.5 voxels of depth tolerance); each visible view's colour is sampled
     bilinearly (premultiplied by alpha, then divided by it, so the background does not bleed in) at
     the voxel centre moved onto the silhouette hull along its outward direction where the hull
-    crosses within the voxel's reach (parallax between views would otherwise mix colours); a voxel seen by at least ``cfg.photo_min_views`` views is removed when fewer than
+    crosses within the voxel's reach (parallax between views would otherwise mix colours); a voxel
+    seen by at least ``cfg.photo_min_views`` views is removed when fewer than
     ``cfg.photo_agree`` of them lie within ``cfg.photo_tolerance`` of the median colour. Removing a
     voxel exposes the one behind it to the next sweep, so concavities that silhouettes cannot see
     (a cup's opening) are dug out sweep by sweep.

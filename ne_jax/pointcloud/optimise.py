@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -44,7 +45,7 @@ from ne_jax.pointcloud.init import Views
 from ne_jax.pointcloud.neighbours import statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import at_test_time, level_samples
-from ne_jax.render.renderer import PointScene, RenderConfig, values_needed, render_rays
+from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, values_needed
 from ne_jax.render.shading import shade
 
 
@@ -103,7 +104,7 @@ class PointOptConfig:
         need(self.min_points >= 1, "min_points", "an integer >= 1")
         need(self.capacity_headroom >= 1, "capacity_headroom", ">= 1")
 
-    def replace(self, **changes) -> "PointOptConfig":
+    def replace(self, **changes) -> PointOptConfig:
         return dataclasses.replace(self, **changes)
 
 
@@ -218,7 +219,7 @@ def grow_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, sce
     padded = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), rays)
     parts = []
     for s in range(0, n + pad, chunk):
-        part = jax.tree_util.tree_map(lambda a: a[s:s + chunk], padded)
+        part = jax.tree_util.tree_map(operator.itemgetter(slice(s, s + chunk)), padded)
         parts.append(jax.device_get(scan_growth(render_cfg, params, scene, part, background,
                                                 cfg.grow_min_distance, cfg.grow_min_sigma)))
     scan = {k: np.concatenate([p[k] for p in parts])[:n] for k in parts[0]}
@@ -313,5 +314,5 @@ def optimise_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict,
     return points, report
 
 
-__all__ = ["PointOptConfig", "add_points", "denoise_points", "grow_points", "mean_neighbour_distance", "optimise_points",
-           "prune_points", "refresh_normals", "resize_capacity", "scan_growth", "select_growth"]
+__all__ = ["PointOptConfig", "add_points", "denoise_points", "grow_points", "mean_neighbour_distance",
+           "optimise_points", "prune_points", "refresh_normals", "resize_capacity", "scan_growth", "select_growth"]

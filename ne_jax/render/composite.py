@@ -32,7 +32,6 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
-
 TAU_MAX = 1.0e3
 """Clamp of the per-slot optical thickness (``exp(-1000) == 0`` in float32 and float64)."""
 

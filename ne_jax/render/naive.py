@@ -82,7 +82,8 @@ def splat_offsets(splat_radius: float) -> np.ndarray:
     reach = math.ceil(splat_radius + 0.5)
     d = np.arange(-reach, reach + 1)
     di, dj = np.meshgrid(d, d, indexing="ij")
-    gap = lambda k: np.maximum(np.abs(k) - 0.5, 0.0)  # centre-to-unit-square distance per axis
+    def gap(k):  # centre-to-unit-square distance per axis
+        return np.maximum(np.abs(k) - 0.5, 0.0)
     ok = (gap(di) ** 2 + gap(dj) ** 2 <= splat_radius**2) | ((di == 0) & (dj == 0))
     return np.stack([di[ok], dj[ok]], axis=-1).astype(np.int32)
 
@@ -182,7 +183,8 @@ def _naive_plot(cfg: RenderConfig, params, points: PointState, camera: Camera, b
         normal = jnp.zeros_like(color)
     count = per_pixel(valid.astype(jnp.int32))
     zeros = jnp.zeros((npix,), jnp.int32)
-    img = lambda a: a.reshape((h, w) + a.shape[1:])
+    def img(a):
+        return a.reshape((h, w) + a.shape[1:])
     return RenderOut(rgb=img(color), opacity=img(opacity), depth=img(depth), normal=img(normal),
                      num_segments=img(count), overflow=img(zeros), dropped=img(zeros))
 

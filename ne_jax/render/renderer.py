@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import operator
 from typing import Literal
 
 import jax
@@ -130,10 +131,10 @@ class RenderConfig:
             return None
         return max(1, int(np.ceil(num_rays * self.segments_per_ray)))
 
-    def replace(self, **changes) -> "RenderConfig":
+    def replace(self, **changes) -> RenderConfig:
         return dataclasses.replace(self, **changes)
 
-    def with_effects(self, **changes) -> "RenderConfig":
+    def with_effects(self, **changes) -> RenderConfig:
         """The same config with some declared effects changed, e.g. ``with_effects(ist=True)``."""
         effects = dataclasses.replace(self.shading.effects, **changes)
         return self.replace(shading=dataclasses.replace(self.shading, effects=effects))
@@ -144,7 +145,7 @@ class RenderConfig:
     # with one of these presets instead lost 0.7 to 3.4 dB (README, accuracy against time, part 2).
 
     @classmethod
-    def tiny(cls, **changes) -> "RenderConfig":
+    def tiny(cls, **changes) -> RenderConfig:
         """Tests and toy scenes: 2 rendering levels, K = 8, 16 candidates, few samples."""
         base = cls(
             tree=KDTreeConfig.tiny(),
@@ -154,12 +155,12 @@ class RenderConfig:
         return dataclasses.replace(base, **changes)
 
     @classmethod
-    def default(cls, **changes) -> "RenderConfig":
+    def default(cls, **changes) -> RenderConfig:
         """The paper's per-sample settings (K = 32, s = 8, 11, 16, 22) with a free tree depth."""
         return dataclasses.replace(cls(), **changes)
 
     @classmethod
-    def paper(cls, **changes) -> "RenderConfig":
+    def paper(cls, **changes) -> RenderConfig:
         """The paper's appendix, including the fixed 21-level tree."""
         return dataclasses.replace(cls(tree=KDTreeConfig.paper()), **changes)
 
@@ -178,12 +179,12 @@ class PointScene:
     rest_alive: jax.Array | None = None
 
     @classmethod
-    def build(cls, points: PointState, cfg: RenderConfig) -> "PointScene":
+    def build(cls, points: PointState, cfg: RenderConfig) -> PointScene:
         """Build the tree of ``points`` (host side) for rendering with ``cfg``."""
         return cls(points=points, tree=build_tree(np.asarray(points.xyz), np.asarray(points.alive), cfg.tree))
 
     @classmethod
-    def carried(cls, rest_xyz, rest_alive, points: PointState, cfg: RenderConfig, **carry) -> "PointScene":
+    def carried(cls, rest_xyz, rest_alive, points: PointState, cfg: RenderConfig, **carry) -> PointScene:
         """The scene of ``points`` with the tree built on ``rest_xyz``/``rest_alive`` carried to them
         (:func:`~ne_jax.geometry.carry.carry_tree`; ``carry``: its keyword arguments)."""
         rest_xyz, rest_alive = np.asarray(rest_xyz), np.asarray(rest_alive)
@@ -191,7 +192,7 @@ class PointScene:
                           np.asarray(points.alive), cfg.tree, **carry)
         return cls(points=points, tree=tree, rest_xyz=jnp.asarray(rest_xyz), rest_alive=jnp.asarray(rest_alive))
 
-    def edited(self, points: PointState, cfg: RenderConfig, carry: bool = True, **carry_kw) -> "PointScene":
+    def edited(self, points: PointState, cfg: RenderConfig, carry: bool = True, **carry_kw) -> PointScene:
         """The scene of ``points``, an edit of this scene's points (same capacity and indices): the
         tree carried from where it was built (``carry``; see :mod:`ne_jax.geometry.carry`), or
         rebuilt on the edited cloud (the paper's behaviour)."""
@@ -492,7 +493,7 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     outs = []
     for s in tqdm(starts, desc=desc, unit="chunk", disable=not progress, leave=False):
         sl = slice(s, s + chunk)
-        part = jax.tree_util.tree_map(lambda a: a[sl], padded)
+        part = jax.tree_util.tree_map(operator.itemgetter(sl), padded)
         bg = background[sl] if per_ray_bg else background
         out = _render_chunk_maybe_checked(cfg, params, scene, part, bg, mesh)
         for _ in range(max_grow):

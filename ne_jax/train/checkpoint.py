@@ -249,8 +249,8 @@ def _unflatten(prefix: str, like: Any, arrays: dict[str, np.ndarray], keys: dict
                                       f"(implementation {impl or 'not recorded'})")
         else:
             if a.shape != tuple(tmpl.shape) or a.dtype != np.dtype(tmpl.dtype):
-                raise CheckpointError(f"{file}: {name}: expected shape {tuple(tmpl.shape)} dtype {np.dtype(tmpl.dtype)}, "
-                                      f"found shape {a.shape} dtype {a.dtype}")
+                raise CheckpointError(f"{file}: {name}: expected shape {tuple(tmpl.shape)} dtype "
+                                      f"{np.dtype(tmpl.dtype)}, found shape {a.shape} dtype {a.dtype}")
             leaf = jnp.asarray(a)
         leaves.append(leaf)
     return jax.tree_util.tree_unflatten(treedef, leaves)
@@ -375,10 +375,13 @@ def _template(train_cfg: TrainConfig, render_cfg: RenderConfig, like_state: Trai
     f = render_cfg.shading.feature_dim
     points_like = PointState(
         xyz=jax.ShapeDtypeStruct((capacity, 3), jnp.float32), alive=jax.ShapeDtypeStruct((capacity,), jnp.bool_),
-        feature=jax.ShapeDtypeStruct((capacity, f), jnp.float32), conf_logit=jax.ShapeDtypeStruct((capacity,), jnp.float32),
-        normal=jax.ShapeDtypeStruct((capacity, 3), jnp.float32), ist=jax.ShapeDtypeStruct((capacity, 3, 3), jnp.float32))
+        feature=jax.ShapeDtypeStruct((capacity, f), jnp.float32),
+        conf_logit=jax.ShapeDtypeStruct((capacity,), jnp.float32),
+        normal=jax.ShapeDtypeStruct((capacity, 3), jnp.float32),
+        ist=jax.ShapeDtypeStruct((capacity, 3, 3), jnp.float32))
     if like_state is None:
-        like_state = jax.eval_shape(lambda p: init_train_state(train_cfg, render_cfg, p, jax.random.key(0)), points_like)
+        like_state = jax.eval_shape(lambda p: init_train_state(train_cfg, render_cfg, p, jax.random.key(0)),
+                                    points_like)
     return like_state, points_like
 
 
@@ -417,7 +420,8 @@ def load_checkpoint(path: str | os.PathLike, train_cfg: TrainConfig, render_cfg:
     try:
         meta = json.loads(meta_file.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise CheckpointError(f"{meta_file}: expected checkpoint metadata (JSON), found unreadable data ({e})") from None
+        raise CheckpointError(f"{meta_file}: expected checkpoint metadata (JSON), "
+                              f"found unreadable data ({e})") from None
     if not isinstance(meta, dict):
         raise CheckpointError(f"{meta_file}: expected a JSON object, found {type(meta).__name__}")
     if meta.get("format") != FORMAT_VERSION:
@@ -461,7 +465,8 @@ def load_checkpoint(path: str | os.PathLike, train_cfg: TrainConfig, render_cfg:
 
 
 def _names(prefix: str, tree: Any) -> list[str]:
-    return ["/".join([prefix, *(_key_name(k) for k in path)]) for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
+    return ["/".join([prefix, *(_key_name(k) for k in path)])
+            for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
 
 
 __all__ = [

@@ -26,8 +26,8 @@ import math
 import shutil
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +40,14 @@ from ne_jax.data.nerf_synthetic import SceneSplit, load_split
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.geometry.points import PointState
-from ne_jax.pointcloud.init import CarveConfig, InitialCloud, Views, carve_visual_hull, ground_truth_cloud, load_ply_cloud
+from ne_jax.pointcloud.init import (
+    CarveConfig,
+    InitialCloud,
+    Views,
+    carve_visual_hull,
+    ground_truth_cloud,
+    load_ply_cloud,
+)
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.pointcloud.optimise import PointOptConfig, optimise_points
 from ne_jax.render.quadrature import QuadratureConfig
@@ -151,9 +158,10 @@ class RunConfig:
                              f"{self.epochs} and {self.steps_per_epoch}")
         a, b = self.point_rounds
         if not 1 <= a <= b + 1:
-            raise ValueError(f"RunConfig.point_rounds: expected (first, last) with 1 <= first <= last + 1, found {self.point_rounds}")
+            raise ValueError("RunConfig.point_rounds: expected (first, last) with 1 <= first <= last + 1, "
+                             f"found {self.point_rounds}")
 
-    def replace(self, **changes) -> "RunConfig":
+    def replace(self, **changes) -> RunConfig:
         """This config with ``changes``; a schedule that spans the run (:attr:`schedule_spans_run`)
         is re-fitted to a new ``epochs`` / ``steps_per_epoch``, unless ``changes`` give a ``train``
         with another ``total_steps`` (then that one is kept)."""
@@ -163,7 +171,7 @@ class RunConfig:
             new = dataclasses.replace(new, train=new.train.replace(total_steps=new.total_steps))
         return new
 
-    def with_schedule(self, epochs: int | None = None, steps_per_epoch: int | None = None) -> "RunConfig":
+    def with_schedule(self, epochs: int | None = None, steps_per_epoch: int | None = None) -> RunConfig:
         """Change the length of the run (``None``: keep); the cosine decay spans the new length
         (also when it did not span the old one)."""
         epochs = self.epochs if epochs is None else int(epochs)
@@ -187,7 +195,7 @@ class RunConfig:
         return a <= epoch <= b and epoch < self.epochs
 
     @classmethod
-    def tiny(cls, **changes) -> "RunConfig":
+    def tiny(cls, **changes) -> RunConfig:
         """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
         of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
         over the four benchmark scenes (README, part 3)."""
@@ -199,7 +207,7 @@ class RunConfig:
         return base.with_schedule().replace(**changes)
 
     @classmethod
-    def default(cls, **changes) -> "RunConfig":
+    def default(cls, **changes) -> RunConfig:
         """The benchmark's ``default`` preset (200 px scenes), sized to train in about an hour on one
         CPU core: K = 16 of 32 candidates, 2 rendering levels, s = 4, 6 (the paper's per-sample
         settings, :meth:`RenderConfig.default`, cost about 4x the time per step; see the README's
@@ -216,7 +224,7 @@ class RunConfig:
         return base.with_schedule().replace(**changes)
 
     @classmethod
-    def paper(cls, **changes) -> "RunConfig":
+    def paper(cls, **changes) -> RunConfig:
         """The paper's settings: 4096 rays per batch, the fixed 21-level tree, lr 2e-3, rounds after
         epochs 4-12 (a GPU-sized run)."""
         base = cls(name="paper", render=RenderConfig.paper(quadrature=QuadratureConfig()),
@@ -522,8 +530,9 @@ class TrainedModel:
 
 def load_trained(run_dir: str | Path) -> TrainedModel:
     """The latest checkpoint of a run directory written by :func:`train`, with its config and the
-    K-D tree rebuilt (or carried, for an edited model: :data:`REST_FILE`). ``scene_dir`` is the training scene recorded in ``metrics.json`` (``None`` if
-    absent). Raises ``FileNotFoundError`` / :class:`CheckpointError` naming what is missing or wrong."""
+    K-D tree rebuilt (or carried, for an edited model: :data:`REST_FILE`). ``scene_dir`` is the
+    training scene recorded in ``metrics.json`` (``None`` if absent). Raises ``FileNotFoundError`` /
+    :class:`CheckpointError` naming what is missing or wrong."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"{run_dir}: expected a training run directory (from `ne-jax train`), found nothing")
@@ -592,6 +601,6 @@ def _epoch_line(r: dict) -> str:
     return line
 
 
-__all__ = ["CONFIG_FILE", "INIT_SOURCES", "METRICS_FILE", "PRESETS", "InitConfig", "RunConfig", "StartFrom", "TrainResult",
-           "TrainedModel", "TrainingDiverged", "get_run_preset", "initial_cloud", "initial_points", "load_run_config",
-           "load_trained", "save_trained", "train"]
+__all__ = ["CONFIG_FILE", "INIT_SOURCES", "METRICS_FILE", "PRESETS", "InitConfig", "RunConfig", "StartFrom",
+           "TrainResult", "TrainedModel", "TrainingDiverged", "get_run_preset", "initial_cloud", "initial_points",
+           "load_run_config", "load_trained", "save_trained", "train"]

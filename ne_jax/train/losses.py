@@ -91,7 +91,7 @@ class LossConfig:
         """``{term: weight}`` of the enabled (non-zero weight) terms, in :data:`TERMS` order."""
         return {name: float(getattr(self, name)) for name in TERMS if getattr(self, name) != 0.0}
 
-    def replace(self, **changes) -> "LossConfig":
+    def replace(self, **changes) -> LossConfig:
         return dataclasses.replace(self, **changes)
 
 

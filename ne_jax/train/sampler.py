@@ -58,7 +58,7 @@ class SamplerConfig:
         if not 0.0 <= self.near < self.far:
             raise ValueError(f"SamplerConfig: expected 0 <= near < far, found near={self.near}, far={self.far}")
 
-    def replace(self, **changes) -> "SamplerConfig":
+    def replace(self, **changes) -> SamplerConfig:
         return dataclasses.replace(self, **changes)
 
 

@@ -3,9 +3,10 @@
 :class:`TrainConfig` holds the static settings of the step (loss weights, optimiser schedule);
 :class:`TrainState` is the frozen pytree the step maps to a new one. What is trained: the colour
 model's parameters and the per-point ``feature`` and ``conf_logit`` arrays (the paper: "point
-features and confidences are parameters"), and the ISTs when ``TrainConfig.train_ist`` (fine-tuning an
-edited model). Point positions, normals, ``alive`` and the K-D tree are fixed during a step; they live in the :class:`~ne_jax.render.renderer.PointScene` passed to the
-step (whose own ``feature``/``conf_logit`` are replaced by the state's).
+features and confidences are parameters"), and the ISTs when ``TrainConfig.train_ist``
+(fine-tuning an edited model). Point positions, normals, ``alive`` and the K-D tree are fixed
+during a step; they live in the :class:`~ne_jax.render.renderer.PointScene` passed to the step
+(whose own ``feature``/``conf_logit`` are replaced by the state's).
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ class TrainConfig:
         if int(self.total_steps) < 1:
             raise ValueError(f"TrainConfig.total_steps: expected an integer >= 1, found {self.total_steps}")
         if not 0.0 <= self.lr_final_fraction <= 1.0:
-            raise ValueError(f"TrainConfig.lr_final_fraction: expected a value in [0, 1], found {self.lr_final_fraction}")
+            raise ValueError("TrainConfig.lr_final_fraction: expected a value in [0, 1], "
+                             f"found {self.lr_final_fraction}")
 
     def schedule(self) -> optax.Schedule:
         """Learning rate by step: cosine decay from ``lr`` to ``lr * lr_final_fraction``."""
@@ -63,7 +65,7 @@ class TrainConfig:
         """Adam with :meth:`schedule`, on all trainables alike."""
         return optax.adam(self.schedule(), b1=self.adam_b1, b2=self.adam_b2, eps=self.adam_eps)
 
-    def replace(self, **changes) -> "TrainConfig":
+    def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)
 
 
@@ -101,7 +103,7 @@ class TrainState:
         """``base`` (tree and fixed point arrays) with the trained per-point arrays."""
         return base.replace(points=self.point_state(base.points))
 
-    def with_points(self, points: PointState, reset) -> "TrainState":
+    def with_points(self, points: PointState, reset) -> TrainState:
         """The state after the cloud changed between epochs: trainable per-point arrays taken from
         ``points`` (capacity ``C'`` >= the current ``C``), Adam's per-point moments padded with zeros
         to ``C'`` and zeroed at ``reset`` (``[C']`` bool or indices: slots that hold new points).
@@ -121,7 +123,8 @@ class TrainState:
 
 
 def _trainable_points(points: PointState, ist: bool) -> dict:
-    pts = {"feature": jnp.asarray(points.feature, jnp.float32), "conf_logit": jnp.asarray(points.conf_logit, jnp.float32)}
+    pts = {"feature": jnp.asarray(points.feature, jnp.float32),
+           "conf_logit": jnp.asarray(points.conf_logit, jnp.float32)}
     if ist:
         pts["ist"] = jnp.asarray(points.ist, jnp.float32)
     return pts

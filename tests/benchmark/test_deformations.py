@@ -66,8 +66,10 @@ def test_rigid_part_moves_only_region_rigidly(points):
 def test_cut_pulls_sides_apart(points):
     moved = np.asarray(D.cut_points(jnp.asarray(points), (0, 0, 0.1), (0, 0, 2), 0.4))
     above = points[:, 2] > 0.1
-    np.testing.assert_allclose(moved[above] - points[above], np.broadcast_to([0, 0, 0.2], (above.sum(), 3)), atol=1e-6)
-    np.testing.assert_allclose(moved[~above] - points[~above], np.broadcast_to([0, 0, -0.2], ((~above).sum(), 3)), atol=1e-6)
+    np.testing.assert_allclose(moved[above] - points[above], np.broadcast_to([0, 0, 0.2], (above.sum(), 3)),
+                               atol=1e-6)
+    np.testing.assert_allclose(moved[~above] - points[~above], np.broadcast_to([0, 0, -0.2], ((~above).sum(), 3)),
+                               atol=1e-6)
 
 
 def test_delete_and_compose(points):
@@ -125,7 +127,8 @@ def test_rigid_scene_moves_every_point_by_its_matrix(points):
     rot, shift = motion[:3, :3], motion[:3, 3]
     np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-12)
-    np.testing.assert_allclose(rot @ (np.array([1.0, 1, 2]) / np.sqrt(6)), np.array([1.0, 1, 2]) / np.sqrt(6), atol=1e-12)
+    axis = np.array([1.0, 1, 2]) / np.sqrt(6)
+    np.testing.assert_allclose(rot @ axis, axis, atol=1e-12)
     np.testing.assert_allclose(motion[:3, :3] @ [0.2, -0.1, 0.3] + shift, [0.2, 0.4, 0.3], atol=1e-12)  # pivot, shifted
     # the same rotation as rotate_points (then the translation), in float32
     ref = np.asarray(D.rotate_points(jnp.asarray(points), (1, 1, 2), np.deg2rad(40.0), (0.2, -0.1, 0.3))) + [0, 0.5, 0]

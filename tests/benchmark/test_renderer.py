@@ -94,7 +94,8 @@ def test_edit_on_mesh_agrees_with_edit_on_points(name):
         moved, deleted = map(np.asarray, edit.apply(pts))
         keep = ~deleted
         rc = o3d.t.geometry.RaycastingScene()
-        rc.add_triangles(o3d.core.Tensor(edited.vertices.astype(np.float32)), o3d.core.Tensor(edited.faces.astype(np.uint32)))
+        rc.add_triangles(o3d.core.Tensor(edited.vertices.astype(np.float32)),
+                         o3d.core.Tensor(edited.faces.astype(np.uint32)))
         dist = rc.compute_distance(o3d.core.Tensor(moved[keep].astype(np.float32))).numpy()
         assert np.median(dist) < 2e-4, edit_name
         assert np.percentile(dist, 99) < 3e-3, edit_name
@@ -117,7 +118,8 @@ def test_edit_samples_keep_index_and_unit_normals():
     edited = S.apply_to_mesh(scene.mesh, scene.edits["bend"])
     vn = M.vertex_normals(edited.vertices, edited.faces)
     rc = o3d.t.geometry.RaycastingScene()
-    rc.add_triangles(o3d.core.Tensor(edited.vertices.astype(np.float32)), o3d.core.Tensor(edited.faces.astype(np.uint32)))
+    rc.add_triangles(o3d.core.Tensor(edited.vertices.astype(np.float32)),
+                     o3d.core.Tensor(edited.faces.astype(np.uint32)))
     closest = rc.compute_closest_points(o3d.core.Tensor(bent["xyz"].astype(np.float32)))
     tri = closest["primitive_ids"].numpy().astype(int)
     uv = closest["primitive_uvs"].numpy()

@@ -92,7 +92,8 @@ def test_images_of_different_sizes(make_scene):
     scene, _ = make_scene(n=3, h=4, w=6)
     png.write_image(scene / "train" / "r_2.png", np.zeros((5, 6, 4), np.float32))
     _raises(
-        [scene / "transforms_train.json", "[frames[2].file_path]", "different sizes", scene / "train" / "r_2.png", "6x5", "6x4"],
+        [scene / "transforms_train.json", "[frames[2].file_path]", "different sizes", scene / "train" / "r_2.png",
+         "6x5", "6x4"],
         load_split,
         scene,
         "train",
@@ -166,7 +167,8 @@ def test_frame_points_at_missing_image(make_scene):
     scene, _ = make_scene()
     (scene / "train" / "r_1.png").unlink()
     _raises(
-        [scene / "transforms_train.json", "[frames[1].file_path]", "'./train/r_1'", "does not exist", scene / "train" / "r_1.png"],
+        [scene / "transforms_train.json", "[frames[1].file_path]", "'./train/r_1'", "does not exist",
+         scene / "train" / "r_1.png"],
         load_split,
         scene,
         "train",
@@ -268,7 +270,8 @@ def test_unsupported_channel_count(tmp_path):
 def test_write_split_rejects_bad_input(tmp_path, random_c2w, random_rgba):
     rng = np.random.default_rng(0)
     good_img, good_c2w = random_rgba(rng, 2, 3, 3), random_c2w(rng, 2)
-    _raises(["images", "[N, H, W, 3|4]", "(2, 3, 3, 5)"], write_split, tmp_path, "train", np.zeros((2, 3, 3, 5)), good_c2w, 0.5)
+    _raises(["images", "[N, H, W, 3|4]", "(2, 3, 3, 5)"], write_split, tmp_path, "train", np.zeros((2, 3, 3, 5)),
+            good_c2w, 0.5)
     _raises(["c2ws", "(2, 4, 4)", "(3, 4, 4)"], write_split, tmp_path, "train", good_img, random_c2w(rng, 3), 0.5)
     bad = good_c2w.copy()
     bad[1, :3, :3] *= 1.1
@@ -279,7 +282,8 @@ def test_write_split_rejects_bad_input(tmp_path, random_c2w, random_rgba):
     _raises(["images", "[0, 1]", "1.5"], write_split, tmp_path, "train", good_img * 1.5, good_c2w, 0.5)
     _raises(["camera_angle_x", "(0, pi)"], write_split, tmp_path, "train", good_img, good_c2w, float("inf"))
     _raises(["bit_depth", "12"], write_split, tmp_path, "train", good_img, good_c2w, 0.5, bit_depth=12)
-    _raises(["uint16", "uint8"], write_split, tmp_path, "train", np.zeros((2, 3, 3, 4), np.uint8), good_c2w, 0.5, bit_depth=16)
+    _raises(["uint16", "uint8"], write_split, tmp_path, "train", np.zeros((2, 3, 3, 4), np.uint8), good_c2w, 0.5,
+            bit_depth=16)
     _raises(["split name", "'../x'"], write_split, tmp_path, "../x", good_img, good_c2w, 0.5)
     assert list(tmp_path.iterdir()) == []
 

@@ -39,7 +39,8 @@ def examples():
 
 def _smooth(h=64, w=64):
     yy, xx = np.mgrid[:h, :w] / max(h, w)
-    return np.stack([0.5 + 0.4 * np.sin(5 * xx + c) * np.cos(4 * yy + 0.5 * c) for c in range(3)], -1).astype(np.float32)
+    channels = [0.5 + 0.4 * np.sin(5 * xx + c) * np.cos(4 * yy + 0.5 * c) for c in range(3)]
+    return np.stack(channels, -1).astype(np.float32)
 
 
 @pytest.mark.parametrize("net", ["alex", "vgg"])
@@ -71,8 +72,8 @@ def test_grows_with_noise_and_is_batched(net):
     np.testing.assert_allclose(np.asarray(lpips(noisy[:2], np.stack([clean, clean]), net=net)), d[:2],
                                rtol=1e-5, atol=1e-7)  # a smaller batch: the same per-image values
     # any leading batch axes; the network is loaded once per process
-    np.testing.assert_allclose(np.asarray(lpips(noisy.reshape(2, 2, 64, 64, 3), np.broadcast_to(clean, (2, 2, 64, 64, 3)),
-                                                net=net)), d.reshape(2, 2), rtol=1e-5, atol=1e-7)
+    batched = lpips(noisy.reshape(2, 2, 64, 64, 3), np.broadcast_to(clean, (2, 2, 64, 64, 3)), net=net)
+    np.testing.assert_allclose(np.asarray(batched), d.reshape(2, 2), rtol=1e-5, atol=1e-7)
     assert lpips_network(net) is lpips_network(net)
 
 
@@ -81,13 +82,15 @@ def test_smallest_image_works_one_pixel_less_raises(net):
     n = LPIPS_MIN_SIZE[net]
     a, b = _smooth(n, n), _smooth(n, n)[::-1].copy()
     assert np.isfinite(float(lpips(a, b, net=net)))
-    with pytest.raises(ValueError, match=rf"lpips: images of {n}x{n - 1} \(WxH\).*{n}x{n} smallest input of LPIPS's {net}"):
+    with pytest.raises(ValueError,
+                       match=rf"lpips: images of {n}x{n - 1} \(WxH\).*{n}x{n} smallest input of LPIPS's {net}"):
         lpips(a[1:], b[1:], net=net)
 
 
 def test_bad_inputs_raise_clear_errors():
     a = np.zeros((32, 32, 3), np.float32)
-    with pytest.raises(ValueError, match=r"lpips: pred and target must have the same shape.*\(32, 32, 3\).*\(32, 31, 3\)"):
+    with pytest.raises(ValueError,
+                       match=r"lpips: pred and target must have the same shape.*\(32, 32, 3\).*\(32, 31, 3\)"):
         lpips(a, a[:, :31])
     with pytest.raises(ValueError, match=r"lpips: expected RGB images \[\.\.\., H, W, 3\].*\(32, 32, 4\)"):
         lpips(np.zeros((32, 32, 4)), np.zeros((32, 32, 4)))

@@ -19,11 +19,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from edit.reference import frame_map_polar
 from ne_jax.edit.apply import apply_edit
 from ne_jax.edit.deformations import Edit, rotation_matrix, twist_points
 from ne_jax.edit.ist import ISTConfig, ist_from_plan, plan_ist
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
+
+from edit.reference import frame_map_polar
 
 from .common import CLOUD_KINDS, DTYPE, HYP, X64, assert_finite, make_cloud, make_state
 

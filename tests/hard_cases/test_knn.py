@@ -18,9 +18,10 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from geometry.reference import interpolate_reference, knn_reference
 from ne_jax.geometry import build_tree, intersect, knn_interpolate
 from ne_jax.geometry.knn import knn_integrate
+
+from geometry.reference import interpolate_reference, knn_reference
 
 from .common import CFG, CLOUD_KINDS, DTYPE, EPS, HYP, TOL, assert_finite, make_cloud, make_rays, make_state
 from .test_traversal import NUM_RAYS, hard_rays

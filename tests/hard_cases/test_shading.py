@@ -25,6 +25,7 @@ from hypothesis import strategies as st
 
 from ne_jax.render.ide import ide_orders, integrated_dir_enc
 from ne_jax.render.shading import Effects, ShadingConfig, init_color_model, shade
+
 from render.test_ide import _scipy_ide
 
 from .common import DTYPE, EPS, HYP, TOL, X64, assert_finite
@@ -53,7 +54,7 @@ def test_ide_matches_scipy(roughness, seed):
     v64 = v.astype(np.float64)
     v64 /= np.linalg.norm(v64, axis=1, keepdims=True)
     want = _scipy_ide(v64, np.full(N, float(DTYPE.type(roughness))), 5)
-    att = np.array([np.exp(-0.5 * l * (l + 1) * float(DTYPE.type(roughness))) for l, _ in ide_orders(5)] * 2)
+    att = np.array([np.exp(-0.5 * deg * (deg + 1) * float(DTYPE.type(roughness))) for deg, _ in ide_orders(5)] * 2)
     # columns whose attenuation is below the dtype's smallest normal flush to 0 (|Y| <= ~2)
     assert np.all(np.abs(got - want) <= TOL["ide"] * att + 4 * float(np.finfo(DTYPE).tiny))
 

@@ -45,7 +45,8 @@ def inputs():
 def make_train_state(scene: PointScene, params=None):
     state = init_train_state(TCFG, CFG, scene.points, jax.random.key(0))
     if params is not None:  # Adam's moments in the params' dtype
-        state = state.replace(params=params, opt_state=TCFG.optimizer().init({"params": params, "points": state.points}))
+        state = state.replace(params=params,
+                              opt_state=TCFG.optimizer().init({"params": params, "points": state.points}))
     return state
 
 

@@ -12,9 +12,10 @@ every box it tested exceeds ``TOL["slab"] * scale`` (``scale`` = the largest coo
 float32 64 eps, float64 64 eps): closer to a decision boundary, rounding may legitimately decide
 either way. Compared rays must emit the same (node, level) list, with end points within
 ``TOL["t_rel"] * scale``; rays that overflow the fixed capacities (rays along a collinear cloud
-cross more than ``max_segments`` voxels) must report it and emit a subset of the reference. At most a quarter of the rays of one example may be ambiguous. Outputs
-and the gradients with respect to origins and directions are finite for every ray. The two-pass
-walk (``first_pass_frontier``) gives the one-pass segments bit for bit on the same cases.
+cross more than ``max_segments`` voxels) must report it and emit a subset of the reference. At
+most a quarter of the rays of one example may be ambiguous. Outputs and the gradients with respect
+to origins and directions are finite for every ray. The two-pass walk (``first_pass_frontier``)
+gives the one-pass segments bit for bit on the same cases.
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from geometry.reference import minimal_voxels
 from ne_jax.geometry import build_tree, intersect
+
+from geometry.reference import minimal_voxels
 
 from .common import CFG, CLOUD_KINDS, DTYPE, HYP, TOL, aimed_rays, assert_finite, make_cloud, make_rays
 

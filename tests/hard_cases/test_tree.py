@@ -10,8 +10,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from geometry.reference import check_candidates, check_tree
 from ne_jax.geometry import build_tree
+
+from geometry.reference import check_candidates, check_tree
 
 from .common import CFG, CLOUD_KINDS, DTYPE, HYP, assert_finite, make_cloud
 

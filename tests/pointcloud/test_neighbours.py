@@ -13,6 +13,7 @@ from ne_jax.pointcloud import neighbours
 from ne_jax.pointcloud.neighbours import pca_normals, statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.pointcloud.optimise import PointOptConfig, denoise_points
+
 from .conftest import RADIUS
 
 

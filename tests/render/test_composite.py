@@ -133,7 +133,7 @@ def test_invalid_slots_with_garbage_contribute_nothing_and_grads_stay_finite():
                       jnp.asarray([[1.0, 0.5]]), jnp.ones((1, 2), bool), jnp.asarray([[1.0, 3.0]]), bg)
     np.testing.assert_allclose(np.asarray(out.rgb)[1], np.asarray(clean.rgb)[0], rtol=1e-6)
     np.testing.assert_allclose(float(out.depth[1]), float(clean.depth[0]), rtol=1e-6)
-    grads = jax.grad(lambda s, c, l: jnp.sum(composite(s, c, l, valid, t_mid, bg).rgb), argnums=(0, 1, 2))(
+    grads = jax.grad(lambda s, c, ln: jnp.sum(composite(s, c, ln, valid, t_mid, bg).rgb), argnums=(0, 1, 2))(
         sigma, rgb, lengths)
     for g in grads:
         assert np.all(np.isfinite(np.asarray(g)))

@@ -223,9 +223,9 @@ def test_empty_view_is_pure_background():
 
 
 def test_huge_density_shows_the_front_point_exactly():
-    """``sigma`` ~ 1e4 (density bias shifted; clamped at TAU_MAX): alpha is exactly 1, so each covered pixel is the colour
-    of its nearest point (up to the float32 shading of that point) — occlusion order — and no
-    background leaks through."""
+    """``sigma`` ~ 1e4 (density bias shifted; clamped at TAU_MAX): alpha is exactly 1, so each
+    covered pixel is the colour of its nearest point (up to the float32 shading of that point) —
+    occlusion order — and no background leaks through."""
     cfg = _cfg()
     params = init_color_model(cfg.shading, jax.random.key(0))
     params = {"shader": {**params["shader"], "density": {**params["shader"]["density"],

@@ -42,7 +42,8 @@ def _scene(seed=0):
     feats = rng.normal(size=(P, F))
     normals = rng.normal(size=(P, 3))
     normals[0] = 0.0  # a degenerate normal
-    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    def f32(x):
+        return jnp.asarray(x, jnp.float32)
     return dict(t_lo=f32(t_lo), t_hi=f32(t_hi), valid=jnp.asarray(valid), level=jnp.asarray(level),
                 origin=f32(origin), direction=f32(direction), pts=f32(pts)), f32(feats), f32(normals)
 

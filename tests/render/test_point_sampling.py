@@ -26,6 +26,7 @@ from ne_jax.render.renderer import (
 from ne_jax.render.shading import init_color_model, shade
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
+
 from tests.render.scenes import glossy_points
 
 RES = 16
@@ -36,7 +37,8 @@ _render_aux = jax.jit(render_rays_with_aux, static_argnums=0)
 
 
 def _stochastic(cfg: RenderConfig) -> RenderConfig:
-    return cfg.replace(quadrature=QuadratureConfig(rule="stochastic", samples_per_level=cfg.quadrature.samples_per_level))
+    return cfg.replace(quadrature=QuadratureConfig(rule="stochastic",
+                                                   samples_per_level=cfg.quadrature.samples_per_level))
 
 
 @pytest.fixture(scope="module")

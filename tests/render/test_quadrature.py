@@ -80,7 +80,8 @@ def smooth_field(t: np.ndarray) -> np.ndarray:
 
 def smooth_mean(lo: float, hi: float) -> float:
     a, b = 3.0, 0.7
-    anti = lambda t: np.exp(b * t) * (b * np.sin(a * t) - a * np.cos(a * t)) / (a * a + b * b)
+    def anti(t):
+        return np.exp(b * t) * (b * np.sin(a * t) - a * np.cos(a * t)) / (a * a + b * b)
     return (anti(hi) - anti(lo)) / (hi - lo)
 
 

@@ -17,6 +17,7 @@ from ne_jax.render.renderer import (
     render_rays,
 )
 from ne_jax.render.shading import init_color_model
+
 from tests.render.scenes import glossy_points
 
 RES = 24

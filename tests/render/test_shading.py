@@ -99,7 +99,8 @@ def test_background_sphere_params_only_when_declared():
 
 def _jaxpr(cfg):
     f, n, d, ist = _inputs()
-    fn = lambda params, f, n, d, ist: shade(cfg, params, f, n, d, ist)
+    def fn(params, f, n, d, ist):
+        return shade(cfg, params, f, n, d, ist)
     return jax.make_jaxpr(fn)(_params(cfg), f, n, d, ist)
 
 
@@ -147,14 +148,16 @@ def test_undeclared_inputs_are_not_in_the_program(fx, expect):
 
 def test_disabled_specular_is_absent_from_jaxpr_and_hlo():
     full, bare = _cfg(), _cfg(specular=False)
-    kernels = lambda cfg: sum(1 for path, _ in jax.tree_util.tree_flatten_with_path(_params(cfg))[0]
-                              if path[-1].key == "kernel")
+    def kernels(cfg):
+        return sum(1 for path, _ in jax.tree_util.tree_flatten_with_path(_params(cfg))[0]
+                   if path[-1].key == "kernel")
     for cfg in (full, bare):
         assert _count(_jaxpr(cfg), "dot_general") == kernels(cfg)
     assert kernels(full) == 14 and kernels(bare) == 8
     # no IDE: no exp of the attenuation, no sigmoid of the tint, in the lowered program either
     f, n, d, ist = _inputs()
-    hlo = lambda cfg: jax.jit(functools.partial(shade, cfg)).lower(_params(cfg), f, n, d, ist).as_text()
+    def hlo(cfg):
+        return jax.jit(functools.partial(shade, cfg)).lower(_params(cfg), f, n, d, ist).as_text()
     assert hlo(full).count("dot_general") == 14 and hlo(bare).count("dot_general") == 8
     assert len(_jaxpr(bare).jaxpr.eqns) < len(_jaxpr(full).jaxpr.eqns) / 2
 
@@ -187,7 +190,8 @@ def test_rotation_ist_equals_unedited_shading_of_rotated_inputs(fx):
     ist = jnp.broadcast_to(q, (R, M, 3, 3))
     plain, edited = _cfg(**fx), _cfg(ist=True, **fx)
     params = _params(plain)
-    rot = lambda v: jnp.einsum("ij,rmj->rmi", q, v)
+    def rot(v):
+        return jnp.einsum("ij,rmj->rmi", q, v)
     a = shade(edited, params, f, n, d, ist)
     b = shade(plain, params, f, rot(n), rot(d))
     np.testing.assert_allclose(np.asarray(a.rgb), np.asarray(b.rgb), atol=2e-6)

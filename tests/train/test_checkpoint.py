@@ -140,7 +140,8 @@ def test_round_trip_every_array_latest_and_keep(tmp_path):
 def test_configs_round_trip_with_types():
     from ne_jax.render.renderer import RenderConfig
 
-    for cfg in (SMALL_TCFG, SMALL_RCFG, RenderConfig.paper(segments_per_ray=None), RCFG.with_effects(background="sphere")):
+    for cfg in (SMALL_TCFG, SMALL_RCFG, RenderConfig.paper(segments_per_ray=None),
+                RCFG.with_effects(background="sphere")):
         data = json.loads(json.dumps(ckpt.config_to_json(cfg)))
         back = ckpt.config_from_json(data)
         assert back == cfg and type(back) is type(cfg)
@@ -236,7 +237,8 @@ def test_shape_mismatch_names_the_array(saved):
                                               r"found shape \(40,\) dtype float32"):
         load_checkpoint(saved, SMALL_TCFG, SMALL_RCFG, like_state=bigger)
     f64 = good.replace(skipped=np.zeros((), np.int64))
-    with pytest.raises(CheckpointError, match=r"state/skipped: expected shape \(\) dtype int64, found shape \(\) dtype int32"):
+    with pytest.raises(CheckpointError,
+                       match=r"state/skipped: expected shape \(\) dtype int64, found shape \(\) dtype int32"):
         load_checkpoint(saved, SMALL_TCFG, SMALL_RCFG, like_state=f64)
 
 
