@@ -389,6 +389,8 @@ def _split_levels(x: np.ndarray, depth: int):
     axes, values, los, his, counts = [], [], [], [], []
     for level in range(depth):
         nrow, w = ids.shape
+        if cnt.max() <= 1:  # single points from here down (a fixed depth above log2(n))
+            return _single_point_levels(x, ids, cnt, level, depth, axes, values, los, his, counts)
         half = w // 2
         lo = np.stack([_row_reduce(np.fmin, pts[a]) for a in range(3)], axis=1)
         hi = np.stack([_row_reduce(np.fmax, pts[a]) for a in range(3)], axis=1)
@@ -427,6 +429,36 @@ def _split_levels(x: np.ndarray, depth: int):
     his.append(pts[:, :, 0].T)
     counts.append(cnt)
     return axes, values, leaf, (los, his, counts)
+
+def _single_point_levels(x, ids, cnt, level, depth, axes, values, los, his, counts):
+    """The rest of :func:`_split_levels` from ``level`` down when every node holds at most one
+    point, without partitions: what the padded-row splits give there. A point always goes left
+    (``ceil(1/2) = 1``), so it sits in the leftmost node of its subtree on every level below and in
+    its leftmost leaf; split axis 0 (no spread), split value its x (the left child's largest key;
+    0 for empty nodes); boxes the point itself (NaN when empty)."""
+    nrow = ids.shape[0]
+    sid = ids.max(axis=1)  # the row's point, -1 = none
+    has = sid >= 0
+    pp = np.where(has[:, None], x[np.maximum(sid, 0)], np.nan)
+    sv = np.where(has, pp[:, 0], 0.0)
+    for lv in range(level, depth + 1):
+        k = 2 ** (lv - level)
+        lo = np.full((nrow * k, 3), np.nan)
+        lo[::k] = pp
+        c = np.zeros(nrow * k, cnt.dtype)
+        c[::k] = cnt
+        los.append(lo)
+        his.append(lo.copy())
+        counts.append(c)
+        if lv < depth:
+            axes.append(np.zeros(nrow * k, np.int32))
+            v = np.zeros(nrow * k)
+            v[::k] = sv
+            values.append(v)
+    leaf = np.full(2**depth, -1, ids.dtype)
+    leaf[:: 2 ** (depth - level)] = sid
+    return axes, values, leaf, (los, his, counts)
+
 
 def _cell_boxes(cfg: KDTreeConfig, axes, values, bb_lo, bb_hi, count, depth: int, margin0: float):
     """Per level ``0 .. depth`` the boxes ``(lo, hi)`` of :func:`_split_levels`' output: top-down
