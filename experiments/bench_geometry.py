@@ -13,12 +13,20 @@ side by side in one process per size (so peak memory is per size):
 * peak resident memory of the process (``ru_maxrss``; "ours" = before the scipy KNN baseline
   runs, "all" = at the end) and the tree's array bytes.
 
+``--build`` measures the tree build alone, the ratio the issue asks about: ``build_tree`` against a
+bare ``cKDTree(points)`` and against the previous build (``tests/geometry/reference.py``'s
+``build_tree_reference``, a verbatim copy), interleaved in one process per cloud, best of
+``--repeat``: 1e6 surface points and 1e6 uniform points at the default depth, and the paper's fixed
+21 levels with 112k surface points.
+
 Usage::
 
     .venv/bin/python experiments/bench_geometry.py            # N = 1e4, 1e5, 1e6, 2e6
     .venv/bin/python experiments/bench_geometry.py --quick    # N = 1e4, 3e4 (smoke test)
+    .venv/bin/python experiments/bench_geometry.py --build    # the build alone (bench_geometry_build.json)
 
-Prints a Markdown table and writes ``experiments/results/bench_geometry.json``.
+Prints a Markdown table and writes ``experiments/results/bench_geometry.json``
+(``bench_geometry_build.json`` with ``--build``).
 """
 
 from __future__ import annotations
@@ -229,6 +237,98 @@ def jit_vs_host(p: int = 2**20) -> dict:
     return {"points": p, "numpy_all_levels_s": t_np, "jit_one_level_argsort_s": t_jit}
 
 
+BUILD_CASES = {
+    # name: (cloud, points, fixed depth or None)
+    "surface_1e6": ("surface", 10**6, None),
+    "uniform_1e6": ("uniform", 10**6, None),
+    "paper_depth21_surface_112k": ("surface", 112_000, 21),
+}
+
+
+def build_case(args) -> dict:
+    """One cloud: cKDTree(points), build_tree and the previous build, interleaved, best of ``repeat``."""
+    name, repeat = args
+    from scipy.spatial import cKDTree
+
+    sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests"))
+    from geometry.reference import build_tree_reference
+
+    from ne_jax.geometry import KDTreeConfig, build_tree
+
+    kind, n, depth = BUILD_CASES[name]
+    xyz = surface_cloud(n) if kind == "surface" else np.random.default_rng(0).uniform(-1, 1, (n, 3)).astype(np.float32)
+    alive = np.ones(n, bool)
+    cfg = KDTreeConfig(depth=depth)
+    warm = np.ones(4096, bool)  # first-call costs (imports, JAX's first transfers) out of the timings
+    build_tree(xyz[:4096], warm, cfg.replace(depth=None)), build_tree_reference(xyz[:4096], warm, cfg.replace(depth=None))
+    best = {"ckdtree": math.inf, "build_tree": math.inf, "previous_build": math.inf}
+    phases = {}
+    for _ in range(repeat):
+        for key, fn in (("ckdtree", lambda ph: cKDTree(xyz)), ("build_tree", lambda ph: build_tree(xyz, alive, cfg, timings=ph)),
+                        ("previous_build", lambda ph: build_tree_reference(xyz, alive, cfg, timings=ph))):
+            ph = {}
+            t = time.perf_counter()
+            fn(ph)
+            t = time.perf_counter() - t
+            if t < best[key]:
+                best[key], phases[key] = t, ph
+    tree = build_tree(xyz, alive, cfg)
+    rows = np.asarray(tree.count)[tree.first_candidate_node : 2**tree.depth - 1]
+    return {"case": name, "cloud": kind, "n": n, "depth": tree.depth, "repeat": repeat,
+            "candidate_rows": int(rows.size), "nonempty_candidate_rows": int((rows > 0).sum()),
+            **{f"{k}_s": v for k, v in best.items()},
+            "build_phases_s": phases.get("build_tree", {}), "previous_build_phases_s": phases.get("previous_build", {}),
+            "ratio_build_tree_to_ckdtree": best["build_tree"] / best["ckdtree"],
+            "ratio_previous_to_ckdtree": best["previous_build"] / best["ckdtree"],
+            "speedup_vs_previous": best["previous_build"] / best["build_tree"]}
+
+
+def build_table(rows) -> str:
+    lines = ["| case | N | depth | cKDTree s | build_tree s (splits / index / boxes / candidates) | previous s | "
+             "build / cKDTree | previous / cKDTree | previous / build |", "|" + "---|" * 9]
+    for r in rows:
+        ph = r["build_phases_s"]
+        lines.append(
+            f"| {r['case']} | {r['n']} | {r['depth']} | {r['ckdtree_s']:.3f} | {r['build_tree_s']:.2f} "
+            f"({ph['splits']:.2f} / {ph['index']:.2f} / {ph['boxes']:.2f} / {ph['candidates']:.2f}) | "
+            f"{r['previous_build_s']:.2f} | {r['ratio_build_tree_to_ckdtree']:.1f}x | "
+            f"{r['ratio_previous_to_ckdtree']:.1f}x | {r['speedup_vs_previous']:.2f}x |")
+    return "\n".join(lines)
+
+
+def build_main(args):
+    import subprocess
+
+    import jax
+
+    ctx = mp.get_context("spawn")
+    rows = []
+    for name in args.cases or list(BUILD_CASES):
+        with ctx.Pool(1) as pool:
+            rows.append(pool.map(build_case, [(name, args.repeat)])[0])
+        print(f"{name}: done", file=sys.stderr, flush=True)
+    md = build_table(rows)
+    print(md)
+    git = lambda *a: subprocess.run(["git", *a], cwd=os.path.dirname(HERE), capture_output=True, text=True).stdout.strip()  # noqa: E731
+    meta = {
+        "command": "python experiments/bench_geometry.py --build" + (f" --repeat {args.repeat}" if args.repeat != 3 else "")
+        + (" --cases " + " ".join(args.cases) if args.cases else ""),
+        "commit": git("rev-parse", "HEAD"),
+        "kdtree_py_modified": bool(git("status", "--porcelain", "--", "ne_jax/geometry/kdtree.py")),
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__,
+                    "load_average_at_end": os.getloadavg()},
+        "note": "Shared 2-core CPU with other jobs running: compare ratios within one row (same process, "
+                "interleaved, best of repeat), not absolute seconds across rows or runs.",
+        "rows": rows,
+        "table_markdown": md,
+    }
+    out = args.out or os.path.join(HERE, "results", "bench_geometry_build.json")
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    with open(out, "w") as fh:
+        json.dump(meta, fh, indent=2)
+    print(f"wrote {out}", file=sys.stderr)
+
+
 def _worker(args):
     n, quick = args
     return run_size(n, quick)
@@ -255,8 +355,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (1e4, 3e4) for a smoke test")
     ap.add_argument("--sizes", type=float, nargs="*", help="override the cloud sizes")
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_geometry.json"))
+    ap.add_argument("--build", action="store_true", help="the tree build alone vs cKDTree and the previous build")
+    ap.add_argument("--cases", nargs="*", choices=sorted(BUILD_CASES), help="with --build: a subset of the clouds")
+    ap.add_argument("--repeat", type=int, default=3, help="with --build: best of this many interleaved rounds")
+    ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
+    if args.build:
+        return build_main(args)
+    args.out = args.out or os.path.join(HERE, "results", "bench_geometry.json")
     sizes = [int(s) for s in (args.sizes or ([1e4, 3e4] if args.quick else [1e4, 1e5, 1e6, 2e6]))]
     ctx = mp.get_context("spawn")
     rows = []
