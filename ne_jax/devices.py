@@ -5,7 +5,7 @@ Every ray renders independently of the others, so a batch of rays splits over de
 communication at all: :func:`shard_rays` runs a per-ray function under ``jax.shard_map`` with the
 ray arrays split along the mesh axis ``"rays"`` and the point state, the K-D tree and the model
 replicated. The KNN's gather + ``top_k`` then stays on each device (under plain ``jit``, ``top_k``
-would gather the whole tensor to every device, DESIGN.md). Training reduces what the devices
+would gather the whole tensor to every device, docs/design.md). Training reduces what the devices
 computed on their rays with ``pmean`` over the same axis (:mod:`ne_jax.train.step`): the loss terms
 are means over rays (or over points, identical on every device), so the mean over equal shards is
 the batch's mean.
@@ -39,7 +39,7 @@ RAYS = "rays"
 def ray_mesh(num_devices: int | None = None) -> Mesh:
     """A one-axis mesh ``("rays",)`` over the first ``num_devices`` devices (default: all). Axis
     type ``Auto`` (an explicit axis would make plain gathers of replicated arrays a sharding type
-    error, DESIGN.md)."""
+    error, docs/design.md)."""
     available = len(jax.devices())
     n = available if num_devices is None else int(num_devices)
     if not 1 <= n <= available:

@@ -1,5 +1,5 @@
 """The infinitesimal surface transformation (IST): per point, the rotation that maps directions of
-the edited scene back to the original scene (paper Sec. 4; DESIGN.md facts "IST").
+the edited scene back to the original scene (paper Sec. 4; docs/design.md facts "IST").
 
 For point ``j`` with two neighbours ``a, b`` (the same indices in both clouds) the local frames are
 

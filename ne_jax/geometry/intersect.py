@@ -1,4 +1,4 @@
-"""Ray / K-D-voxel traversal (data flow step 2 of DESIGN.md).
+"""Ray / K-D-voxel traversal (data flow step 2 of docs/design.md).
 
 ``intersect`` walks the tree top-down, level by level, keeping for every ray a fixed-capacity
 frontier of the nodes its segment ``[near, far]`` hits, and emits the *minimal intersected voxels*

@@ -1,4 +1,4 @@
-"""KNN interpolation of per-point arrays at sample positions (data flow step 4 of DESIGN.md).
+"""KNN interpolation of per-point arrays at sample positions (data flow step 4 of docs/design.md).
 
 For a sample ``q`` in the voxel of node ``g``, the neighbours are the ``K`` nearest *alive* points
 among ``g``'s candidate set (the ``num_candidates`` points nearest the box centre, fixed at build
@@ -69,7 +69,7 @@ def _finish(state: PointState, points, index, valid, eps) -> Neighbors:
 
 
 def _split_xyz(state: PointState):
-    # Gathering from separate x / y / z arrays is ~3x faster on XLA:CPU than from [C, 3] (DESIGN.md).
+    # Gathering from separate x / y / z arrays is ~3x faster on XLA:CPU than from [C, 3] (docs/design.md).
     return state.xyz[:, 0], state.xyz[:, 1], state.xyz[:, 2]
 
 
@@ -89,7 +89,7 @@ def _candidate_search(state: PointState, tree: KDTree, points, node, k: int, eps
         + (points[..., 2:3] - pz[:, None, :]) ** 2
     )  # [B, S, Kc]
     key = jnp.where(ok[:, None, :], lax.stop_gradient(d2), jnp.inf)
-    _, j = lax.top_k(-key, k)  # [B, S, K]; the values are not sliced (DESIGN.md trap)
+    _, j = lax.top_k(-key, k)  # [B, S, K]; the values are not sliced (docs/design.md trap)
     b = jnp.arange(ci.shape[0])[:, None, None]
     s = jnp.arange(points.shape[1])[None, :, None]
     valid = ok[b, j]

@@ -5,7 +5,7 @@ per sample) but each through its own eyes: its own features, its own normals ori
 IST computed by :func:`~ne_jax.edit.apply.apply_edit` from its own cloud to the intermediate one.
 Per segment, each model's colour model shades its own integrated features; the density and colour
 are blended, ``sigma = (1 - r) sigma_A + r sigma_B`` and ``c = (1 - r) c_A + r c_B``, then composited
-as usual (DESIGN.md: "rendering blends the two scenes' density and colour terms with the morph ratio").
+as usual (docs/design.md: "rendering blends the two scenes' density and colour terms with the morph ratio").
 
 How it plugs into the renderer without a second code path: the morph scene's
 :class:`~ne_jax.geometry.points.PointState` carries both models' per-point arrays side by side —

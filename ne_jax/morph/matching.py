@@ -1,4 +1,4 @@
-"""K-D-tree matching of two unindexed point clouds (the paper's morphing appendix, DESIGN.md facts).
+"""K-D-tree matching of two unindexed point clouds (the paper's morphing appendix, docs/design.md facts).
 
 Two K-D trees are built at once, one per cloud, in lockstep: every node holds the same number ``m``
 of points of each cloud; its split axis is the axis of largest extent of the *union* of its two

@@ -2,7 +2,7 @@
 only, on explicit request) the ground-truth surface samples.
 
 The paper initialises from a pretrained MVS point-generation network, which cannot be had offline
-(``DESIGN.md``, "Not available offline"). :func:`carve_visual_hull` stands in: it carves a voxel grid
+(``docs/design.md``, "Not available offline"). :func:`carve_visual_hull` stands in: it carves a voxel grid
 with the training views' foreground masks and keeps the shell of what survives.
 
 Carving (classical shape-from-silhouette):

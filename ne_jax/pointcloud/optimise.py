@@ -1,4 +1,4 @@
-"""Point-cloud optimisation between training epochs: grow, prune, denoise (DESIGN.md facts).
+"""Point-cloud optimisation between training epochs: grow, prune, denoise (docs/design.md facts).
 
 One round (:func:`optimise_points`) on a trained model:
 
@@ -69,7 +69,7 @@ class PointOptConfig:
     grow_max_fraction: float = 0.02
     """At most this share of the alive count is added per round."""
     prune_threshold: float = 0.1
-    """Points with confidence below this are pruned (DESIGN.md: 0.1)."""
+    """Points with confidence below this are pruned (docs/design.md: 0.1)."""
     outlier_neighbors: int = 64
     """Neighbours of the statistical outlier removal (released code: 64)."""
     outlier_std_ratio: float = 3.0

@@ -1,4 +1,4 @@
-"""Rendering pieces that need no K-D tree: quadrature (steps 3 and 5 of DESIGN.md), the integrated
+"""Rendering pieces that need no K-D tree: quadrature (steps 3 and 5 of docs/design.md), the integrated
 directional encoding, the colour model with declared effects (step 6) and compositing (step 7)."""
 
 from ne_jax.render.composite import TAU_MAX, Composited, clip_overlaps, composite

@@ -1,4 +1,4 @@
-"""Front-to-back compositing of per-segment density and colour (data flow step 7 of DESIGN.md).
+"""Front-to-back compositing of per-segment density and colour (data flow step 7 of docs/design.md).
 
 ``tau_i = sigma_i * len_i`` (optical thickness of slot ``i``), ``alpha_i = 1 - exp(-tau_i)`` computed
 as ``-expm1(-tau_i)`` (exact for thin segments), transmittance ``T_i = exp(-sum_{j<i} tau_j)`` from an
@@ -64,7 +64,7 @@ def composite(sigma: jax.Array, rgb: jax.Array, lengths: jax.Array, valid: jax.A
 
     Args:
         sigma: ``[R, M]`` density (>= 0). rgb: ``[R, M, 3]``. lengths: ``[R, M]`` segment lengths in the
-            unit ``sigma`` is per (DESIGN.md: point spacings). valid: ``[R, M]`` bool. t_mid: ``[R, M]``
+            unit ``sigma`` is per (docs/design.md: point spacings). valid: ``[R, M]`` bool. t_mid: ``[R, M]``
             distance reported for each slot in the depth map (e.g. the segment midpoint).
             background: ``[R, 3]`` or ``[3]``. normals: optional ``[R, M, 3]`` for a normal map.
     """

@@ -7,7 +7,7 @@ plotting/projecting the point cloud to the camera plane." Here:
 1. every alive point is shaded *as a segment of its own* with the scene's colour model
    (:func:`~ne_jax.render.shading.shade` on the point's own feature, and its normal / IST where the
    declared effects read them); the view direction is the unit vector from the camera centre to
-   the point; the segment is one point spacing long, so with lengths in spacings (DESIGN.md)
+   the point; the segment is one point spacing long, so with lengths in spacings (docs/design.md)
    ``tau = sigma * 1`` and ``alpha = 1 - exp(-sigma)``. KNN interpolation over a single point is the
    point itself, so confidences do not enter (their gradient is exactly zero);
 2. the point is projected with the pinhole camera (``ne_jax.data.rays`` conventions: pixel

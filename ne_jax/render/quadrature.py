@@ -1,4 +1,4 @@
-"""Fixed quadrature rules for the per-segment means (data flow steps 3 and 5 of DESIGN.md).
+"""Fixed quadrature rules for the per-segment means (data flow steps 3 and 5 of docs/design.md).
 
 A segment ``[t_lo, t_hi]`` is sampled at ``s`` evenly spaced points with both end points
 (``u_j = j / (s-1)``); the segment mean of a field is approximated by ``w . y`` with weights ``w [s]``

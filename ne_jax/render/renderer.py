@@ -1,4 +1,4 @@
-"""Rendering rays and images through the K-D voxels (data flow steps 2-7 of DESIGN.md, joined).
+"""Rendering rays and images through the K-D voxels (data flow steps 2-7 of docs/design.md, joined).
 
 ``render_rays(cfg, params, scene, rays, background)``:
 
@@ -12,7 +12,7 @@
    array is gathered once per segment;
 5. ``shade``: density and colour per segment;
 6. ``composite``: ``alpha = 1 - exp(-sigma * len)`` with ``len`` in units of the point spacing
-   (DESIGN.md), transmittance in log space, background behind.
+   (docs/design.md), transmittance in log space, background behind.
 
 A scene that does not declare an effect does not compute it: without ``point_normals`` (or without
 ``specular``) the normals are never interpolated, without ``ist`` the IST matrices are never

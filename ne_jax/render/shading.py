@@ -1,4 +1,4 @@
-"""The colour model (data flow step 6 of DESIGN.md): per-segment density and colour from the
+"""The colour model (data flow step 6 of docs/design.md): per-segment density and colour from the
 segment's mean feature, mean point normal, view direction and mean IST.
 
 Flax flavour: ``linen``. Parameters are a plain nested dict created by ``init_color_model`` and
@@ -6,7 +6,7 @@ passed explicitly (``shade(cfg, params, ...)``), so the model is a pure function
 ``(config, params, inputs)``, the param tree is inspectable as data and ``jax.grad`` / optax apply
 unchanged; nnx's mutable module objects would need split/merge at every jit boundary for nothing.
 
-Architecture (the released code's sizes, DESIGN.md facts; ELU everywhere):
+Architecture (the released code's sizes, docs/design.md facts; ELU everywhere):
 
 * trunk: ``Dense(F -> 48)``, residual block ``h + Dense(elu(Dense(elu(h))))``, ``elu``;
 * heads on the trunk: density ``softplus(Dense_1 + 0.5)``, predicted normal
@@ -18,7 +18,7 @@ Architecture (the released code's sizes, DESIGN.md facts; ELU everywhere):
   tone-maps); like the released code (and multinerf) the sigmoid is widened by ``rgb_padding``:
   ``c (1 + 2p) - p``.
 
-View redirection (IST): the IST maps the edited scene's frame to the original one (DESIGN.md), and
+View redirection (IST): the IST maps the edited scene's frame to the original one (docs/design.md), and
 the MLPs were trained in the original frame, so the view direction is mapped before reflection:
 ``d' = normalize(IST @ d)``. The reflection normal must live in the same frame: the *predicted* normal
 is a function of the (original) features, so it is used as is; the *point* normal is re-estimated on
@@ -104,7 +104,7 @@ class Effects:
 
 @dataclasses.dataclass(frozen=True)
 class ShadingConfig:
-    """Static colour-model settings (DESIGN.md facts by default)."""
+    """Static colour-model settings (docs/design.md facts by default)."""
 
     feature_dim: int = 32
     """Width of the integrated point feature."""

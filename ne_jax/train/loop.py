@@ -144,7 +144,7 @@ class RunConfig:
     epochs: int = 16
     steps_per_epoch: int = 1000
     point_rounds: tuple[int, int] = (4, 12)
-    """The cloud is optimised after epochs ``first .. last`` (1-based, inclusive; DESIGN.md: 4-12)."""
+    """The cloud is optimised after epochs ``first .. last`` (1-based, inclusive; docs/design.md: 4-12)."""
     background: str = "white"
     """The colour behind the object in training and evaluation (``"white"``, ``"black"``)."""
     seed: int = 0

@@ -1,4 +1,4 @@
-"""Training losses (DESIGN.md facts: "Losses"), each a pure function with finite values and
+"""Training losses (docs/design.md facts: "Losses"), each a pure function with finite values and
 gradients at the hard inputs (rays with zero opacity, confidences near 0 and 1).
 
 Notation: ``R`` rays, ``M`` segment slots per ray, ``w_i`` the compositing weights ``T_i alpha_i``,
@@ -23,7 +23,7 @@ Notation: ``R`` rays, ``M`` segment slots per ray, ``w_i`` the compositing weigh
   confidence 0 -- the mechanism the paper names. Points without a normal (zero vector) contribute 0.
 * ``confidence``: ``mean_{alive} [log c' + log(1 - c') - log(eps (1 - eps))]`` with
   ``c' = clip(c, eps, 1 - eps)`` -- PointNeRF's "zero-one" regulariser (the ``log c + log(1-c)``
-  family of DESIGN.md), shifted to be 0 at the clip bounds and ``log(1 / (4 eps (1-eps)))`` at
+  family of docs/design.md), shifted to be 0 at the clip bounds and ``log(1 / (4 eps (1-eps)))`` at
   ``c = 0.5``. It pushes confidences away from 0.5; the clip (done on the logit) stops the push at
   ``eps`` / ``1 - eps`` so logits do not drift without bound and gradients stay finite.
 * ``sparsity``: Cauchy penalty on the optical thickness of every rendered segment,
@@ -52,7 +52,7 @@ TERMS = ("photometric", "orientation", "normal", "confidence", "sparsity", "ist_
 
 @dataclasses.dataclass(frozen=True)
 class LossConfig:
-    """Static loss weights and shapes (hashable). Weights are our choices where DESIGN.md and the
+    """Static loss weights and shapes (hashable). Weights are our choices where docs/design.md and the
     paper give none; 0 removes a term from the compiled step."""
 
     photometric: float = 1.0

@@ -7,7 +7,7 @@ The host builds a :class:`RayPool` once from a :class:`~ne_jax.data.nerf_synthet
   dilation of the mask) that are not foreground; they teach the model where the object ends;
 * every pool entry is a flat pixel index ``view * H * W + row * W + col`` and its target: the RGB
   composited on the user's background colour (``rgb * a + bg * (1 - a)``; the background is never
-  copied from ground truth into predictions, DESIGN.md).
+  copied from ground truth into predictions, docs/design.md).
 
 :func:`sample_batch` (jit) draws a fixed-size batch from the pool with a PRNG key: ``num_band``
 band pixels and ``batch_size - num_band`` foreground pixels (uniform, with replacement), so the
@@ -37,7 +37,7 @@ class SamplerConfig:
     """Static settings of the ray sampler (hashable)."""
 
     batch_size: int = 4096
-    """Rays per batch (DESIGN.md: 4096). Static: it sets the step's array shapes."""
+    """Rays per batch (docs/design.md: 4096). Static: it sets the step's array shapes."""
     band_width: int = 4
     """Width in pixels of the border band around the foreground mask (square dilation); 0: no band."""
     band_fraction: float = 0.1

@@ -32,12 +32,12 @@ class TrainConfig:
     loss: LossConfig = LossConfig()
     """Loss weights and shapes."""
     lr: float = 2e-3
-    """Adam's peak learning rate (DESIGN.md facts: 2e-3)."""
+    """Adam's peak learning rate (docs/design.md facts: 2e-3)."""
     total_steps: int = 100_000
     """Steps of the cosine decay; the rate stays at its floor afterwards."""
     lr_final_fraction: float = 0.01
     """Floor of the cosine decay as a fraction of ``lr`` (``alpha`` of ``optax.cosine_decay_schedule``;
-    our choice, DESIGN.md says only "cosine decay")."""
+    our choice, docs/design.md says only "cosine decay")."""
     adam_b1: float = 0.9
     """Adam's first-moment decay."""
     adam_b2: float = 0.999
