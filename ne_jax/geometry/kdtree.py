@@ -1,4 +1,4 @@
-"""The flattened K-D tree behind NeuralEditor's "K-D voxels" (data flow step 1 of DESIGN.md).
+"""The flattened K-D tree behind NeuralEditor's "K-D voxels" (data flow step 1 of docs/design.md).
 
 Layout: an implicit complete binary tree of depth ``D`` over ``P = 2**D`` point slots. Nodes are
 numbered in heap order: level ``l`` holds nodes ``2**l - 1 .. 2**(l+1) - 2`` (``2**l`` of them),
@@ -22,7 +22,7 @@ and each box contains its children's.
 Built on the host (numpy + ``scipy.spatial.cKDTree``), not under ``jit``: a single level's XLA
 ``argsort`` under jit (2^20 points, 0.18-0.19 s) costs more than numpy's split of that level
 (``experiments/bench_geometry.py``, field ``jit_vs_host``), and the candidate sets need k-NN queries,
-where scipy's C++ tree is 10-35x faster than the JAX KNN structures measured for DESIGN.md. Building
+where scipy's C++ tree is 10-35x faster than the JAX KNN structures measured for docs/design.md. Building
 is rare (after edits and point-cloud optimisation); everything the tree feeds (``intersect``,
 ``knn_interpolate``) is jit-compiled.
 
