@@ -401,19 +401,17 @@ def _split_levels(x: np.ndarray, depth: int):
         axis = np.argmax(ext, axis=1)
         rows = np.arange(nrow)
         key = pts[axis, rows]  # [nrow, w]
-        pad = ids < 0
-        key[pad] = np.inf
+        np.fmin(key, np.inf, out=key)  # pads (NaN) -> +inf
         kl = (cnt + 1) // 2
         need = np.flatnonzero(kl < half)  # the left child takes one pad
         if need.size:
-            key[need, np.argmax(pad[need], axis=1)] = -np.inf
+            key[need, np.argmax(ids[need] < 0, axis=1)] = -np.inf
         order = np.argpartition(key, half - 1, axis=1)
+        lmax = key[rows, order[:, half - 1]]
+        rmin = _row_reduce(np.minimum, np.take_along_axis(key, order[:, half:], axis=1))
         flat = (order + (rows * w)[:, None]).ravel()
-        key = key.ravel()[flat].reshape(nrow, w)
         pts = pts.reshape(3, -1)[:, flat].reshape(3, 2 * nrow, half)
         ids = ids.ravel()[flat].reshape(2 * nrow, half)
-        lmax = key[:, half - 1]
-        rmin = _row_reduce(np.minimum, key[:, half:])
         has_right = cnt > kl
         rmin = np.where(has_right, rmin, lmax)  # no inf - inf below
         split = np.where(has_right, 0.5 * (lmax + rmin), np.where(cnt > 0, lmax, 0.0))
@@ -567,11 +565,14 @@ def _candidate_sets(xo, kd, centre, nonempty, first_level, depth, kc, out_index,
                 if full.all():  # both children of every parent: siblings share the gathers
                     c = centre[r0 + kids]
                     c3 = c.reshape(npar, 2, 3)
-                    d2 = np.zeros((npar, 2, wp))
-                    for a in range(3):
-                        t = xs[a][sup][:, None, :] - c3[:, :, a, None]
-                        t *= t
-                        d2 += t
+                    d2, t = np.empty((npar, 2, wp)), np.empty((npar, 2, wp))
+                    for a in range(3):  # (dx² + dy²) + dz², as scipy sums
+                        np.subtract(xs[a][sup][:, None, :], c3[:, :, a, None], out=t if a else d2)
+                        if a:
+                            np.multiply(t, t, out=t)
+                            d2 += t
+                        else:
+                            np.multiply(d2, d2, out=d2)
                     m = 2 * npar
                     d2 = d2.reshape(m, wp)
                     psup = None

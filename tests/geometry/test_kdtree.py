@@ -190,3 +190,25 @@ def test_build_matches_the_reference_build(name):
         assert x.dtype == y.dtype and x.shape == y.shape, field
         np.testing.assert_array_equal(x, y, err_msg=field)
     assert (a.depth, a.capacity, a.num_render_levels) == (b.depth, b.capacity, b.num_render_levels)
+
+
+@pytest.mark.parametrize("n, depth, kind", [(1, 6, "normal"), (300, 12, "normal"), (5000, 16, "normal"),
+                                            (4096, 12, "rounded"), (777, 10, "signed_zeros")])
+def test_split_levels_match_the_reference(n, depth, kind):
+    """``_split_levels`` (also used by ``carry_tree``'s local rebuilds) returns what the previous
+    implementation returned, byte for byte: ties (rounded coordinates), signed zeros, and levels
+    below log2(n) where nodes hold one point or none."""
+    from ne_jax.geometry.kdtree import _split_levels
+
+    from .reference import _ref_split_levels
+
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=(n, 3))
+    if kind == "rounded":
+        x = np.round(2 * x)
+    if kind == "signed_zeros":
+        x[:, 1] = np.where(rng.random(n) < 0.5, -0.0, 0.0)
+    a, b = _ref_split_levels(x, depth), _split_levels(x, depth)
+    flat = lambda r: list(r[0]) + list(r[1]) + [r[2]] + [v for part in r[3] for v in part]  # noqa: E731
+    for u, v in zip(flat(a), flat(b), strict=True):
+        assert u.dtype == v.dtype and u.shape == v.shape and u.tobytes() == v.tobytes()
