@@ -14,9 +14,12 @@ keeps what the model was trained with instead:
   positions (Umeyama, over the subtree's alive members and its candidate set; ``s`` within 1e-5 of
   1 counts as 1). Its boxes stay as
   built, in the frame of the build, and a ray is tested there (``KDTree.frame_rot/frame_shift``):
-  a ray is cut where the same ray was cut before the edit. Boxes are grown by the fit's residual
-  (the farthest member from its rigidly moved position), so a smooth deformation keeps every point
-  inside its boxes and loses correspondingly little; a rigid motion has a residual at rounding level;
+  a ray is cut where the same ray was cut before the edit. Under a smooth deformation a point may
+  leave its boxes by up to the fit's residual (below ``tear_factor`` spacings); the boxes are not
+  grown for it, since neighbouring subtrees' voxels would then overlap and a ray would integrate
+  their density twice (measured on glossy/bend at the ``tiny`` preset: boxes grown by the residual
+  rendered 0.66 dB worse, 22.09 against 22.76 dB); the point still reaches the samples of the
+  voxels around it through their candidate sets;
 * **deletions** shrink the boxes of the nodes that lost points to their alive members (plus the
   level's margin), as a rebuild would, and empty nodes are skipped;
 * **torn subtrees** (residual above ``tear_factor`` point spacings: a cut, a part moved away) are
@@ -172,11 +175,10 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
         sub = np.repeat(np.arange(nf), 2 ** (level - f))  # each node's frame-level ancestor
         growth = _level_margin_growth(cfg, 2 ** (depth - level))
         m, m_world = margin0 * growth, margin0_world * growth
-        pad = np.where(framed[sub], residual[sub] / scale[sub], 0.0)[:, None]  # in the frame's units
-        lo_b, hi_b = lo_all[sl] - pad, hi_all[sl] + pad  # built boxes, grown by the fit's residual
+        lo_b, hi_b = lo_all[sl], hi_all[sl]  # the built boxes, in their frame
         lost = (cnt < count_built[sl])[:, None]  # shrink to what is left, as a rebuild would
-        lo_f = np.where(lost, np.maximum(lo_b, b_lo - m - pad), lo_b)
-        hi_f = np.where(lost, np.minimum(hi_b, b_hi + m + pad), hi_b)
+        lo_f = np.where(lost, np.maximum(lo_b, b_lo - m), lo_b)
+        hi_f = np.where(lost, np.minimum(hi_b, b_hi + m), hi_b)
         world = ~framed[sub][:, None]
         lo_new = np.where(world, b_lo - m_world, lo_f)
         hi_new = np.where(world, b_hi + m_world, hi_f)
