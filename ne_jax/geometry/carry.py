@@ -3,7 +3,7 @@
 Rebuilding the tree after an edit re-partitions the cloud: the node boxes, the candidate sets and
 so the segments a ray is cut into all change, and the deterministic integration is not additive
 over a segment cut differently. A rigid motion of a whole trained scene then renders 24-28 dB away
-from the unedited model seen from the moved cameras (README, "Faithful edits"). ``carry_tree``
+from the unedited model seen from the moved cameras (docs/editing.md, "Edit fidelity"). ``carry_tree``
 keeps what the model was trained with instead:
 
 * **partition and candidate sets** are kept (node membership by index; dead points are masked by

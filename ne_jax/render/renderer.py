@@ -142,7 +142,7 @@ class RenderConfig:
     # These presets are render-only starting points (tests, benchmarks, untrained scenes). A trained
     # model renders with the config it was trained with (``RunConfig.render``, saved with the run):
     # the training presets ``RunConfig.tiny/default/paper`` differ from these, and a model rendered
-    # with one of these presets instead lost 0.7 to 3.4 dB (README, accuracy against time, part 2).
+    # with one of these presets instead lost 0.7 to 3.4 dB (docs/studies/accuracy_vs_time.md, part 2).
 
     @classmethod
     def tiny(cls, **changes) -> RenderConfig:

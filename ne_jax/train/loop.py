@@ -198,7 +198,7 @@ class RunConfig:
     def tiny(cls, **changes) -> RunConfig:
         """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
         of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
-        over the four benchmark scenes (README, part 3)."""
+        over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3)."""
         render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=32, frontier_capacity=32, knn_k=16),
                                    quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)))
         base = cls(name="tiny", render=render, sampler=SamplerConfig(batch_size=1024),
@@ -210,9 +210,9 @@ class RunConfig:
     def default(cls, **changes) -> RunConfig:
         """The benchmark's ``default`` preset (200 px scenes), sized to train in about an hour on one
         CPU core: K = 16 of 32 candidates, 2 rendering levels, s = 4, 6 (the paper's per-sample
-        settings, :meth:`RenderConfig.default`, cost about 4x the time per step; see the README's
-        accuracy-vs-time study). The tree is walked in two passes, 16 nodes wide and then 64 for at
-        most a quarter of the rays: on the benchmark's glossy scene this trains the same model bit for
+        settings, :meth:`RenderConfig.default`, cost about 4x the time per step; see
+        docs/studies/accuracy_vs_time.md). The tree is walked in two passes, 16 nodes wide and then
+        64 for at most a quarter of the rays: on the benchmark's glossy scene this trains the same model bit for
         bit as one 64-wide pass, in 0.885x the time."""
         render = RenderConfig.default(tree=KDTreeConfig.default(knn_k=16, candidate_min=32, num_render_levels=2,
                                                                 first_pass_frontier=16, retry_share=0.25),
