@@ -90,7 +90,10 @@ def camera_rays_batch(res: int):
         a = 2 * np.pi * k / 4 + 0.3
         cam = Camera.from_fov(look_at([4.0 * np.cos(a), 4.0 * np.sin(a), 1.5]), res, res, 0.9)
         rays.append(camera_rays(cam, 0.1, 10.0))
-    cat = lambda f: jnp.concatenate([getattr(r, f) for r in rays])
+
+    def cat(f):
+        return jnp.concatenate([getattr(r, f) for r in rays])
+
     return Rays(origin=cat("origin"), direction=cat("direction"), near=cat("near"), far=cat("far"))
 
 
@@ -251,20 +254,22 @@ def build_case(args) -> dict:
     from scipy.spatial import cKDTree
 
     sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests"))
-    from geometry.reference import build_tree_reference
-
     from ne_jax.geometry import KDTreeConfig, build_tree
+
+    from geometry.reference import build_tree_reference
 
     kind, n, depth = BUILD_CASES[name]
     xyz = surface_cloud(n) if kind == "surface" else np.random.default_rng(0).uniform(-1, 1, (n, 3)).astype(np.float32)
     alive = np.ones(n, bool)
     cfg = KDTreeConfig(depth=depth)
     warm = np.ones(4096, bool)  # first-call costs (imports, JAX's first transfers) out of the timings
-    build_tree(xyz[:4096], warm, cfg.replace(depth=None)), build_tree_reference(xyz[:4096], warm, cfg.replace(depth=None))
+    build_tree(xyz[:4096], warm, cfg.replace(depth=None))
+    build_tree_reference(xyz[:4096], warm, cfg.replace(depth=None))
     best = {"ckdtree": math.inf, "build_tree": math.inf, "previous_build": math.inf}
     phases = {}
     for _ in range(repeat):
-        for key, fn in (("ckdtree", lambda ph: cKDTree(xyz)), ("build_tree", lambda ph: build_tree(xyz, alive, cfg, timings=ph)),
+        for key, fn in (("ckdtree", lambda ph: cKDTree(xyz)),
+                        ("build_tree", lambda ph: build_tree(xyz, alive, cfg, timings=ph)),
                         ("previous_build", lambda ph: build_tree_reference(xyz, alive, cfg, timings=ph))):
             ph = {}
             t = time.perf_counter()
@@ -309,9 +314,13 @@ def build_main(args):
         print(f"{name}: done", file=sys.stderr, flush=True)
     md = build_table(rows)
     print(md)
-    git = lambda *a: subprocess.run(["git", *a], cwd=os.path.dirname(HERE), capture_output=True, text=True).stdout.strip()  # noqa: E731
+
+    def git(*a):
+        return subprocess.run(["git", *a], cwd=os.path.dirname(HERE), capture_output=True, text=True).stdout.strip()
+
     meta = {
-        "command": "python experiments/bench_geometry.py --build" + (f" --repeat {args.repeat}" if args.repeat != 3 else "")
+        "command": "python experiments/bench_geometry.py --build"
+        + (f" --repeat {args.repeat}" if args.repeat != 3 else "")
         + (" --cases " + " ".join(args.cases) if args.cases else ""),
         "commit": git("rev-parse", "HEAD"),
         "kdtree_py_modified": bool(git("status", "--porcelain", "--", "ne_jax/geometry/kdtree.py")),
@@ -342,7 +351,8 @@ def table(rows) -> str:
     lines = [head, "|" + "---|" * 14]
     for r in rows:
         lines.append(
-            f"| {r['n']:.0e} | {r['depth']} | {r['build_s']:.2f} | {r['ckdtree_build_s']:.2f} | {r['open3d_build_s']:.2f} | "
+            f"| {r['n']:.0e} | {r['depth']} | {r['build_s']:.2f} | {r['ckdtree_build_s']:.2f} | "
+            f"{r['open3d_build_s']:.2f} | "
             f"{r['build_s'] / r['ckdtree_build_s']:.1f}x | {r['intersect_rays_per_s']:.0f} | {r['us_per_ray']:.1f} | "
             f"{r['knn_samples_per_s']:.0f} | {r['scipy_samples_per_s']:.0f} | "
             f"{r['knn_samples_per_s'] / r['scipy_samples_per_s']:.2f}x | {r['recall']:.4f} | "

@@ -61,14 +61,16 @@ def trained_model(run, scene_dir: Path, run_dir: Path, log) -> TrainedModel:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default="tiny", choices=["tiny", "default"])
-    parser.add_argument("--root", default=None, help="an existing benchmark folder of the preset (default: generate in --runs)")
+    parser.add_argument("--root", default=None,
+                        help="an existing benchmark folder of the preset (default: generate in --runs)")
     parser.add_argument("--runs", required=True, help="folder for models, edited models and fine-tuning runs (reused)")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--edits", nargs="+", default=None, help="subset of edit names (default: every edit)")
     parser.add_argument("--variants", nargs="+", default=list(MAIN_VARIANTS),
                         help=f"variant names or 'all' (default: {' '.join(MAIN_VARIANTS)}); one of {sorted(VARIANTS)}")
     parser.add_argument("--finetune-epochs", type=int, default=1)
-    parser.add_argument("--finetune-steps", type=int, default=None, help="steps per fine-tuning epoch (default: the preset's)")
+    parser.add_argument("--finetune-steps", type=int, default=None,
+                        help="steps per fine-tuning epoch (default: the preset's)")
     parser.add_argument("--no-finetune", action="store_true")
     args = parser.parse_args(argv)
     names = list(VARIANTS) if args.variants == ["all"] else args.variants
@@ -90,7 +92,7 @@ def main(argv=None) -> None:
         scene_dir = root / scene
         models = {}
 
-        def model_of(v):  # trained (or read back) only when a record needs it
+        def model_of(v, models=models, scene_dir=scene_dir, scene=scene):  # trained (or read back) only when needed
             run = variant_run(full, v)
             if run.name not in models:
                 models[run.name] = trained_model(run, scene_dir, runs / scene / "models" / run.name, print)
@@ -150,7 +152,8 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
         key = (model.run.name, v.ist, v.edit)  # Naive Plotting plots the fine-tuned model without IST
         t0 = time.perf_counter()
         if key not in finetuned:
-            kept = ("" if v.edit.reestimate_normals else "-keptnormals") + ("-rebuilt" if v.edit.tree == "rebuild" else "")
+            kept = (("" if v.edit.reestimate_normals else "-keptnormals")
+                    + ("-rebuilt" if v.edit.tree == "rebuild" else ""))
             ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}{kept}"
             result = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
                               progress=False, log=lambda s: None)
@@ -167,7 +170,8 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
                 "zero-shot and after fine-tuning on the edited scene's training views",
         "preset": args.preset, "finetune_epochs": 0 if args.no_finetune else args.finetune_epochs,
         "finetune_steps_per_epoch": args.finetune_steps or full.steps_per_epoch,
-        "training": {"epochs": full.epochs, "steps_per_epoch": full.steps_per_epoch, "batch_size": full.sampler.batch_size},
+        "training": {"epochs": full.epochs, "steps_per_epoch": full.steps_per_epoch,
+                     "batch_size": full.sampler.batch_size},
         "background": full.background, "seconds": round(seconds, 1), "records": records,
         "unedited": unedited, "commit": _commit(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},

@@ -30,7 +30,7 @@ import numpy as np
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
-from ne_jax.edit.deformations import Edit, rigid_motion, rigid_scene
+from ne_jax.edit.deformations import Edit, rigid_scene
 from ne_jax.edit.fidelity import equivariance, exact_rigid_points
 from ne_jax.edit.ist import ISTConfig
 from ne_jax.render.renderer import PointScene
@@ -153,8 +153,8 @@ def write(out: str, results: list[dict], command: str) -> None:
                   "| motion | tree carried | tree rebuilt (paper) |", "|---|---:|---:|"]
         lines += [f"| {r['motion']} | {r['carry']:.2f} | {r['rebuild']:.2f} |" for r in res["motions"]]
         rigid = [r for r in res["motions"] if r["kind"] == "rigid"]
-        lines += [f"| worst rigid motion | {min(r['carry'] for r in rigid):.2f} | {min(r['rebuild'] for r in rigid):.2f} |",
-                  ""]
+        lines += [f"| worst rigid motion | {min(r['carry'] for r in rigid):.2f} | "
+                  f"{min(r['rebuild'] for r in rigid):.2f} |", ""]
         if res.get("diagnosis"):
             name, angle = DIAGNOSE
             lines += [f"Diagnosis: rotation by {angle:g} deg about {name} {AXES[name]}, one stage at a time.", "",

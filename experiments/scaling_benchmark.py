@@ -156,9 +156,9 @@ def main(argv=None) -> None:
     for r in rows:
         lines.append(f"| {r['devices']} | {r['render_rays_per_s']} | {r['render_speedup']} | {r['train_rays_per_s']} | "
                      f"{r['train_speedup']} | {r['render_first_s']} | {r['train_first_s']} |")
-    lines += ["", f"Memory: {base['chunk_temp_bytes_per_ray']} bytes of temporaries per ray in a chunk of {base['chunk']} "
-              f"rays (XLA's memory analysis of the compiled chunk on one device; with N devices each holds 1/N of "
-              f"the chunk: " + ", ".join(f"{r['devices']}: {r['chunk_temp_bytes_per_ray']}" for r in rows)
+    lines += ["", f"Memory: {base['chunk_temp_bytes_per_ray']} bytes of temporaries per ray in a chunk of "
+              f"{base['chunk']} rays (XLA's memory analysis of the compiled chunk on one device; with N devices each "
+              f"holds 1/N of the chunk: " + ", ".join(f"{r['devices']}: {r['chunk_temp_bytes_per_ray']}" for r in rows)
               + f" bytes per chunk ray and device); {base['point_state_bytes_per_point']} bytes of point state and "
               f"{base['tree_bytes_per_point']} bytes of K-D tree per point, replicated on every device."]
     atomic_write_text(RESULTS / "scaling.md", "\n".join(lines) + "\n")

@@ -156,7 +156,8 @@ def _cmd_edit(args) -> int:
     model = dataclasses.replace(model, scene_dir=scene_dir)
     out = Path(args.out)
     edited, report = edit_model(model, args.edit, out, ist=not args.no_ist, scene_dir=args.edited_scene)
-    print(f"edit {report['edit']!r}: {report['moved']} points moved, {report['deleted']} deleted, {report['alive']} alive; "
+    print(f"edit {report['edit']!r}: {report['moved']} points moved, {report['deleted']} deleted, "
+          f"{report['alive']} alive; "
           f"IST from {report['good']} frames, {report['filled']} filled from neighbours, {report['identity']} identity "
           f"({report['seconds']:.1f} s) -> {out}")
     if edited.scene_dir is not None and not args.no_eval:
@@ -198,7 +199,8 @@ def _cmd_morph(args) -> int:
     scene_dir = _need_scene(Path(args.scene) if args.scene else a.scene_dir, args.run_a)
     split = load_split(scene_dir, args.split)
     if not 0 <= args.view < split.num_views:
-        raise ValueError(f"--view: expected a view of the {args.split} split in [0, {split.num_views}), found {args.view}")
+        raise ValueError(f"--view: expected a view of the {args.split} split in [0, {split.num_views}), "
+                         f"found {args.view}")
     if args.scale < 1:
         raise ValueError(f"--scale: expected a downscale factor >= 1, found {args.scale}")
     camera = split.camera(args.view).scaled(args.scale) if args.scale > 1 else split.camera(args.view)
@@ -217,8 +219,8 @@ def _cmd_morph(args) -> int:
 
 def _cmd_demo(args) -> int:
     from ne_jax.data.benchmark import generate_benchmark
-    from ne_jax.eval import orbit_cameras_for, render_views, write_video
     from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.eval import orbit_cameras_for, render_views, write_video
     from ne_jax.train.loop import get_run_preset, train
     from ne_jax.viz import contact_sheet
 
@@ -253,7 +255,8 @@ def _cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ne-jax", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="ne-jax", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--host-devices", type=int, default=None, metavar="N",
                         help="CPU only: split rays over N host devices (sets NE_JAX_HOST_DEVICES; default: one per "
                              "usable core; 1 opts out; a count given to JAX itself in XLA_FLAGS wins)")
@@ -311,7 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.set_defaults(func=_cmd_eval)
 
     rd = run_parser("render", "render a trained run's views or an orbit video")
-    rd.add_argument("--split", default="test", choices=SCENE_SPLITS, help="views to render (and the orbit's intrinsics)")
+    rd.add_argument("--split", default="test", choices=SCENE_SPLITS,
+                    help="views to render (and the orbit's intrinsics)")
     rd.add_argument("--orbit", type=int, default=0, metavar="FRAMES", help="render a camera orbit of FRAMES frames")
     rd.add_argument("--elevation", type=float, default=25.0, help="orbit elevation in degrees")
     rd.add_argument("--fps", type=int, default=24)

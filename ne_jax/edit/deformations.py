@@ -14,9 +14,9 @@ A whole-scene rigid edit (:func:`rigid_scene`) also carries its motion ``T`` (``
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import Callable
 
 import jax
 import jax.numpy as jnp

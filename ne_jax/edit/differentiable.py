@@ -47,6 +47,7 @@ import optax
 from flax import struct
 from jax.flatten_util import ravel_pytree
 
+from ne_jax.compiles import count_compiles
 from ne_jax.data.rays import Rays
 from ne_jax.edit.apply import EditConfig, EditPlan, edited_points, plan_edit
 from ne_jax.edit.deformations import bend_points, jacobian_normals
@@ -203,7 +204,9 @@ def make_edit_loss(render_cfg: RenderConfig, deform: Deformation, edit_cfg: Edit
 
     def forward_value_and_grad(theta, *args):
         flat, unravel = ravel_pytree(theta)
-        f = lambda x: loss(unravel(x), *args)
+
+        def f(x):
+            return loss(unravel(x), *args)
 
         def along(v):
             (value, out), (dvalue, _) = jax.jvp(f, (flat,), (v,))
@@ -248,7 +251,9 @@ class Trajectory:
 
     def to_dict(self) -> dict:
         """JSON-ready lists."""
-        flat = lambda xs: [np.asarray(x, np.float64).ravel().tolist() for x in xs]
+        def flat(xs):
+            return [np.asarray(x, np.float64).ravel().tolist() for x in xs]
+
         return {"theta": flat(self.theta), "loss": [float(v) for v in self.loss], "grad": flat(self.grad),
                 "rebuilt": [bool(v) for v in self.rebuilt], "dropped": [int(v) for v in self.dropped],
                 "overflow": [int(v) for v in self.overflow], "grown": [bool(v) for v in self.grown],
@@ -292,22 +297,24 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
     background = jnp.asarray(background)
     topology = None
     fn = problem.value_and_grad
-    size0 = fn._cache_size()
     for step in range(steps + 1):
         rebuild = topology is None or (rebuild_every > 0 and step % rebuild_every == 0)
         if rebuild:
             topology = problem.topology(points, theta, deleted)
-        (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
+        with count_compiles() as compiled:  # around fn only: topology and updates compile eager operations
+            (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
+        traj.compiles += compiled.count
         grown = False
         for _ in range(max_grow):
             bigger = grown_config(problem.render_cfg, out)
             if bigger is None:
                 break
-            traj.compiles += fn._cache_size() - size0
             problem = make_edit_loss(bigger, problem.deform, problem.edit_cfg, problem.normals, problem.mode,
                                      problem.boxes)
-            fn, size0, grown = problem.value_and_grad, 0, True
-            (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
+            fn, grown = problem.value_and_grad, True
+            with count_compiles() as compiled:
+                (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
+            traj.compiles += compiled.count
         traj.theta.append(np.asarray(ravel_pytree(theta)[0]))
         traj.loss.append(float(value))
         traj.grad.append(np.asarray(ravel_pytree(grad)[0]))
@@ -322,10 +329,9 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
             break
         updates, opt_state = optimizer.update(grad, opt_state, theta)
         theta = optax.apply_updates(theta, updates)
-    traj.compiles += fn._cache_size() - size0
     traj.problem = problem
     return theta, traj
 
 
-__all__ = ["Deformation", "EditLoss", "EditTopology", "Trajectory", "bend_deformation", "deformed_normals", "follow_boxes",
-           "make_edit_loss", "recover_parameter"]
+__all__ = ["Deformation", "EditLoss", "EditTopology", "Trajectory", "bend_deformation", "deformed_normals",
+           "follow_boxes", "make_edit_loss", "recover_parameter"]

@@ -14,7 +14,7 @@ re-estimates normals and fits ISTs from neighbours.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np

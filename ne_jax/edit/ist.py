@@ -218,7 +218,8 @@ def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence,
 # ------------------------------------------------------------------------------ the transform (jit)
 
 
-def frame_transforms(xyz0, normal0, xyz1, normal1, pair, use, iters: int = 12) -> tuple[jax.Array, jax.Array, jax.Array]:
+def frame_transforms(xyz0, normal0, xyz1, normal1, pair, use, iters: int = 12
+                     ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Per-slot frame rotations from the pairs: ``(ist [C, 3, 3], sign [C], det_b [C])``.
 
     ``sign`` orients the edited normal (``s n'`` keeps the frame's handedness); ``det_b`` is the

@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence, Union
 
 import jax.numpy as jnp
 import numpy as np
@@ -37,7 +37,7 @@ class EditError(ValueError):
     """A bad edit: the message names the edit's source, the expectation and what was found."""
 
 
-EditSource = Union[Edit, str, os.PathLike, np.ndarray, Sequence]
+EditSource = Edit | str | os.PathLike | np.ndarray | Sequence
 """What :func:`edit_target` accepts."""
 
 

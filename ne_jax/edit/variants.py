@@ -36,7 +36,7 @@ plots it (training through the plot is not implemented).
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from collections.abc import Callable
 
 from ne_jax.edit.apply import EditConfig
 from ne_jax.render.naive import naive_plot_image
@@ -78,7 +78,8 @@ def _effects(**changes) -> Callable[[RunConfig], RunConfig]:
 def _rule(rule: str) -> Callable[[RunConfig], RunConfig]:
     def change(run: RunConfig) -> RunConfig:
         q = run.render.quadrature
-        return run.replace(render=run.render.replace(quadrature=QuadratureConfig(rule=rule, samples_per_level=q.samples_per_level)))
+        quadrature = QuadratureConfig(rule=rule, samples_per_level=q.samples_per_level)
+        return run.replace(render=run.render.replace(quadrature=quadrature))
     return change
 
 
@@ -104,7 +105,8 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("traditional_sampling", "- integration + traditional sampling", _samples, ist=True),
     Variant("stochastic_integration", "- deterministic + stochastic integration", _rule("stochastic"), ist=True),
     Variant("no_normals", "- normal vectors", _effects(point_normals=False), ist=True),
-    Variant("traditional_color", "- Phong + traditional colour", _effects(color_head="traditional", specular=False), ist=True),
+    Variant("traditional_color", "- Phong + traditional colour", _effects(color_head="traditional", specular=False),
+            ist=True),
     Variant("half_points", "- 50% points", _half_points, ist=True),
     Variant("no_ist_kept_normals", "w/o IST, normals not re-estimated", None, ist=False,
             edit=EditConfig(reestimate_normals=False)),

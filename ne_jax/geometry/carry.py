@@ -45,8 +45,14 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ne_jax.geometry.kdtree import (KDTree, KDTreeConfig, _cell_boxes, _level_margin_growth, _spacing_and_limit,
-                                    _split_levels)
+from ne_jax.geometry.kdtree import (
+    KDTree,
+    KDTreeConfig,
+    _cell_boxes,
+    _level_margin_growth,
+    _spacing_and_limit,
+    _split_levels,
+)
 
 
 def _similarity_fit(x: np.ndarray, y: np.ndarray, w: np.ndarray):
@@ -258,8 +264,8 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
 
     valid &= count_all > 0
     if report is not None:
-        report.update(subtrees=int(nf), torn=int(torn.sum()), max_residual=float(residual.max() / spacing_world), scale=unit,
-                      emptied=int(((count_all == 0) & (count_built > 0)).sum()))
+        report.update(subtrees=int(nf), torn=int(torn.sum()), max_residual=float(residual.max() / spacing_world),
+                      scale=unit, emptied=int(((count_all == 0) & (count_built > 0)).sum()))
     dtype = np.asarray(tree.lo).dtype
     frames = {}
     if framed.any():
@@ -269,7 +275,8 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
                       frame_level=f)
     return tree.replace(lo=jnp.asarray(lo_all.astype(dtype)), hi=jnp.asarray(hi_all.astype(dtype)),
                         count=jnp.asarray(count_all.astype(np.int32)), valid=jnp.asarray(valid),
-                        perm=jnp.asarray(perm_new.astype(np.int32)), split_axis=jnp.asarray(split_axis.astype(np.int32)),
+                        perm=jnp.asarray(perm_new.astype(np.int32)),
+                        split_axis=jnp.asarray(split_axis.astype(np.int32)),
                         split_value=jnp.asarray(split_value.astype(dtype)),
                         candidates=jnp.asarray(cand_new.astype(np.int32)),
                         spacing=jnp.asarray(spacing_world, dtype), **frames)

@@ -237,7 +237,8 @@ def _check_rays(rays: Rays):
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "include_grow_level"))
-def intersect(tree: KDTree, rays: Rays, cfg: KDTreeConfig = KDTreeConfig(), include_grow_level: bool = False) -> Segments:
+def intersect(tree: KDTree, rays: Rays, cfg: KDTreeConfig = KDTreeConfig(),
+              include_grow_level: bool = False) -> Segments:
     """Minimal intersected voxels of every ray (see the module docstring). Jit-compiled; ``cfg``
     and ``include_grow_level`` (also emit the growing level's minimal voxels) are static.
 

@@ -181,10 +181,10 @@ class KDTreeConfig:
         """Width of every candidate set: ``max(candidate_min, 2 * 2**(num_render_levels + 1))``."""
         return max(self.candidate_min, 2 * 2 ** (self.num_render_levels + 1))
 
-    def replace(self, **changes) -> "KDTreeConfig":
+    def replace(self, **changes) -> KDTreeConfig:
         return dataclasses.replace(self, **changes)
 
-    def widened(self) -> "KDTreeConfig":
+    def widened(self) -> KDTreeConfig:
         """The traversal after a frontier overflow: a two-pass walk retries twice the share of rays
         (up to all of them) before the frontier doubles."""
         if self.first_pass_frontier is not None and self.retry_share < 1:
@@ -192,18 +192,18 @@ class KDTreeConfig:
         return self.replace(frontier_capacity=2 * self.frontier_capacity)
 
     @classmethod
-    def tiny(cls, **changes) -> "KDTreeConfig":
+    def tiny(cls, **changes) -> KDTreeConfig:
         """Small capacities for tests and toy scenes."""
         base = cls(candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=16, max_segments=16)
         return dataclasses.replace(base, **changes)
 
     @classmethod
-    def default(cls, **changes) -> "KDTreeConfig":
+    def default(cls, **changes) -> KDTreeConfig:
         """The paper's settings with traversal capacities sized for surface-like clouds."""
         return dataclasses.replace(cls(), **changes)
 
     @classmethod
-    def paper(cls, **changes) -> "KDTreeConfig":
+    def paper(cls, **changes) -> KDTreeConfig:
         """The paper's appendix: 21 levels (fixed), 4 rendering levels + growing, K = 32, 96 candidates;
         64 segment slots a ray (at 21 levels a ray finds more, smaller voxels: with 32, 1.9% of a
         training batch's rays on the benchmark's glossy cloud filled every slot; README, part 3)."""

@@ -74,7 +74,7 @@ class PointState:
         normal=None,
         dtype=jnp.float32,
         key: jax.Array | None = None,
-    ) -> "PointState":
+    ) -> PointState:
         """Host-side constructor from an ``[N, 3]`` cloud; slots ``N .. C-1`` are dead padding.
 
         Args:
@@ -152,6 +152,6 @@ class PointState:
             ist=jnp.asarray(ist_c),
         )
 
-    def delete(self, index) -> "PointState":
+    def delete(self, index) -> PointState:
         """Mark the points at ``index`` (an index array or a ``[C]`` mask) dead; shapes unchanged."""
         return self.replace(alive=self.alive.at[index].set(False))

@@ -79,7 +79,6 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | Non
             steps[sub] = _make_train_step(cfg, render_cfg, sub)
         return steps[sub](state, scene, batch)
 
-    step_on_even_mesh._cache_size = lambda: sum(s._cache_size() for s in steps.values())
     return step_on_even_mesh
 
 
@@ -183,7 +182,6 @@ def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
         # the step's input shardings, and with them its compiled program, never change
         return step(jax.device_put(state, replicated), scene, batch)
 
-    sharded_step._cache_size = step._cache_size
     return sharded_step
 
 

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from ne_jax.cli import build_parser
+from ne_jax.compiles import count_compiles
 from ne_jax.devices import default_mesh, even_mesh, padded_size, ray_mesh
 from ne_jax.render.renderer import render_chunked
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
@@ -95,20 +96,20 @@ def test_sharded_training_step_equals_single_device_and_compiles_once(scene_and_
     state = state.replace(params=params, opt_state=tcfg.optimizer().init({"params": params, "points": state.points}))
     batch = _batch(rays, bg)
     one, many = make_train_step(tcfg, CFG, ray_mesh(1)), make_train_step(tcfg, CFG, ray_mesh(4))
-    compiles = []
-    jax.monitoring.register_event_duration_secs_listener(
-        lambda event, secs, **kw: compiles.append(event) if event == "/jax/core/compile/backend_compile_duration" else None)
+    compiles = []  # (one device, four devices) compilations of each step
     s1, s4 = state, state
-    for i in range(3):
-        s1, m1 = one(s1, scene, batch)
-        if i == 1:
-            compiles.clear()  # from here on: no compilation at all
-        s4, m4 = many(s4, scene, batch)
+    for _ in range(3):
+        with count_compiles() as c1:
+            s1, m1 = one(s1, scene, batch)
+        with count_compiles() as c4:
+            s4, m4 = many(s4, scene, batch)
+        compiles.append((c1.count, c4.count))
         assert bool(m4["ok"])
         for k in m1:
             np.testing.assert_allclose(np.asarray(m4[k]), np.asarray(m1[k]), rtol=2e-5, atol=1e-6, err_msg=k)
-    assert compiles == []
-    for a, b in zip(jax.tree_util.tree_leaves((s1.params, s1.points)), jax.tree_util.tree_leaves((s4.params, s4.points))):
+    assert compiles[1][1] == 0 and compiles[2] == (0, 0)  # from the second one-device step on: no compilation at all
+    for a, b in zip(jax.tree_util.tree_leaves((s1.params, s1.points)),
+                    jax.tree_util.tree_leaves((s4.params, s4.points))):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
 
 
@@ -127,9 +128,10 @@ def test_a_batch_that_does_not_split_over_the_mesh_trains_on_the_part_it_splits_
     batch = _batch(rays, bg)
     s1, m1 = make_train_step(tcfg, CFG, ray_mesh(1))(state, scene, batch)
     step = make_train_step(tcfg, CFG)
-    s3, m3 = step(state, scene, batch)
+    with count_compiles() as compiled:
+        s3, m3 = step(state, scene, batch)
     assert {d.id for d in jax.tree_util.tree_leaves(s3.params)[0].devices()} == {0, 1, 2}
-    assert bool(m3["ok"]) and step._cache_size() == 1
+    assert bool(m3["ok"]) and compiled.names.count("jit(step_fn)") == 1  # once (besides slicing the inputs into shards)
     for k in m1:
         np.testing.assert_allclose(np.asarray(m3[k]), np.asarray(m1[k]), rtol=2e-5, atol=1e-6, err_msg=k)
     leaves = jax.tree_util.tree_leaves

@@ -62,7 +62,8 @@ def test_deletion_flips_alive_only(points):
     np.testing.assert_array_equal(np.asarray(edited.alive), expect)
     np.testing.assert_array_equal(np.asarray(edited.xyz), np.asarray(points.xyz))
     assert report["deleted"] == int((z[:N] > 0.5).sum()) and report["moved"] == 0
-    np.testing.assert_allclose(np.asarray(edited.ist)[expect], np.broadcast_to(np.eye(3), (expect.sum(), 3, 3)), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(edited.ist)[expect], np.broadcast_to(np.eye(3), (expect.sum(), 3, 3)),
+                               atol=1e-5)
 
 
 def test_npy_rows_with_nan_deletions(points, tmp_path):

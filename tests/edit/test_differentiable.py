@@ -98,7 +98,10 @@ def test_gradient_matches_central_difference(world):
     for theta in (0.2, 0.35, 0.45, 0.55, 0.7):
         topo = p.topology(w["points"], theta)
         (value, _), grad = p.value_and_grad(jnp.float32(theta), w["params"], w["points"], topo, rays, targets, w["bg"])
-        f = lambda t, topo=topo: float(loss(jnp.float32(t), w["params"], w["points"], topo, rays, targets, w["bg"])[0])
+
+        def f(t, topo=topo):
+            return float(loss(jnp.float32(t), w["params"], w["points"], topo, rays, targets, w["bg"])[0])
+
         assert abs(f(theta) - float(value)) <= 1e-6 * max(1.0, float(value))
         h = 1e-4
         fd1, fd2 = (f(theta + h) - f(theta - h)) / (2 * h), (f(theta + 2 * h) - f(theta - 2 * h)) / (4 * h)

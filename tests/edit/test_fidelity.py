@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from ne_jax.data.rays import Camera
+from ne_jax.data.synthetic import look_at
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import rigid_motion, rigid_scene
 from ne_jax.edit.fidelity import EXACT_DB, equivariance, exact_rigid_points, motion_parts, moved_camera, psnr_between
-from ne_jax.data.synthetic import look_at
 from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
@@ -35,7 +35,8 @@ def model():
     n = estimate_normals(NormalConfig(orient="none"), x)
     n *= np.sign(np.sum(n * x, axis=1, keepdims=True))
     points = PointState.from_numpy(x, 1280, CFG.shading.feature_dim, normal=n, key=jax.random.key(1))
-    points = points.replace(feature=points.feature + 0.5 * jnp.asarray(rng.normal(size=points.feature.shape), jnp.float32))
+    noise = jnp.asarray(rng.normal(size=points.feature.shape), jnp.float32)
+    points = points.replace(feature=points.feature + 0.5 * noise)
     params = init_color_model(CFG.shading, jax.random.key(2))
     cams = [Camera.from_fov(look_at(3.0 * np.array(e)), 24, 24, 0.9) for e in ([1, 0.3, 0.4], [-0.5, 1, -0.2])]
     return params, PointScene.build(points, CFG), cams

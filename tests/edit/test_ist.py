@@ -96,7 +96,9 @@ def test_general_linear_map_matches_float64_reference():
 
 def test_bend_matches_the_jacobian_rotation_on_the_surface():
     x0, n0 = plane(40)
-    bend = lambda p: bend_points(p, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), np.deg2rad(60.0), 2.0)
+    def bend(p):
+        return bend_points(p, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), np.deg2rad(60.0), 2.0)
+
     x1 = np.asarray(bend(jnp.asarray(x0, jnp.float32)), np.float64)
     n1 = estimate_normals(UNORIENTED, x1)
     ist, _, report = ist_of(x0, n0, x1, n1)
@@ -158,7 +160,9 @@ def test_gradients_through_the_ist_are_finite(angle):
     x0 = np.concatenate([sphere(300), np.c_[np.linspace(-1, 1, 10), np.zeros(10), np.zeros(10)]])
     n0 = np.concatenate([estimate_normals(UNORIENTED, x0[:300]), np.zeros((10, 3))])
     cfg = ISTConfig(polar_iters=6, fill_passes=1)
-    rot = lambda t: rotation_matrix([0.0, 0.3, 1.0], t)
+    def rot(t):
+        return rotation_matrix([0.0, 0.3, 1.0], t)
+
     x1 = x0 @ np.asarray(rot(angle)).T
     n1 = np.concatenate([estimate_normals(UNORIENTED, x1[:300]), np.zeros((10, 3))])
     plan = plan_ist(cfg, x0, n0, x1, n1, np.ones(310, bool), np.full(310, 0.5))

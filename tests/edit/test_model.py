@@ -35,7 +35,8 @@ def scene_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def trained(scene_dir, tmp_path_factory):
-    render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24), quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
+    render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24),
+                               quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
     init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
     run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),
                     init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),

@@ -458,7 +458,8 @@ def _ref_candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
 
 def build_tree_reference(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | None = None,
                          empty_sentinel: bool = True) -> KDTree:
-    """(Reference; ``empty_sentinel``: candidate rows of empty nodes hold the sentinel only.) Build the K-D tree of the alive points of ``xyz`` (host-side; see the module docstring).
+    """(Reference; ``empty_sentinel``: candidate rows of empty nodes hold the sentinel only.) Build
+    the K-D tree of the alive points of ``xyz`` (host-side; see the module docstring).
 
     Args:
         xyz: ``[C, 3]`` positions (a ``PointState.xyz``; numpy or jax). Dead rows may hold anything.

@@ -93,7 +93,8 @@ def test_slab_exact_cases():
 
     def run(o, d, min_len=0.0):
         d = jnp.asarray(d, jnp.float32)
-        return slab_intersect(lo, hi, jnp.asarray(o, jnp.float32), safe_reciprocal(d), jnp.abs(d) < tiny(jnp.float32), 0.0, big, min_len)
+        return slab_intersect(lo, hi, jnp.asarray(o, jnp.float32), safe_reciprocal(d), jnp.abs(d) < tiny(jnp.float32),
+                              0.0, big, min_len)
 
     # parallel, inside the slab (on the face plane): hit over the full extent along x
     t0, t1, h = run([-1.0, 0.0, 0.5], [1.0, -0.0, 0.0])
@@ -136,14 +137,16 @@ def test_scale_equivariance(factor, exact):
     seg = intersect(tree, make_rays(o, d, far=far), CFG)
     seg_s = intersect(tree_s, make_rays(o.astype(np.float64) * factor, d, far=far * factor), CFG)
     assert int(jnp.max(seg.overflow)) == 0 and int(jnp.max(seg_s.overflow)) == 0
-    same = np.all((np.asarray(seg.node) == np.asarray(seg_s.node)) & (np.asarray(seg.valid) == np.asarray(seg_s.valid)), axis=1)
+    same = np.all((np.asarray(seg.node) == np.asarray(seg_s.node)) & (np.asarray(seg.valid) == np.asarray(seg_s.valid)),
+                  axis=1)
     if exact:  # powers of two: every float operation commutes with the scaling
         assert same.all()
         np.testing.assert_array_equal(np.asarray(seg.t_lo) * factor, np.asarray(seg_s.t_lo))
     else:
         assert same.mean() > 0.95, same.mean()
         m = np.asarray(seg.valid)[same]
-        np.testing.assert_allclose(np.asarray(seg_s.t_lo)[same][m] / factor, np.asarray(seg.t_lo)[same][m], rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(np.asarray(seg_s.t_lo)[same][m] / factor, np.asarray(seg.t_lo)[same][m],
+                                   rtol=1e-4, atol=1e-4)
 
 
 def test_overflow_counted_and_retry_reallocates():
@@ -205,17 +208,18 @@ def test_two_pass_beyond_the_retry_share_is_counted():
 
 
 def test_grad_wrt_origin_finite():
-    cfg = CFG.replace(depth=10)
-    two_pass = cfg.replace(frontier_capacity=64, first_pass_frontier=2, retry_share=1.0)
-    for name, cfg in (("sphere_700", cfg), ("identical", cfg), ("coplanar", cfg), ("one_point", cfg),
-                      ("sphere_700", two_pass), ("coplanar", two_pass)):
+    one_pass = CFG.replace(depth=10)
+    two_pass = one_pass.replace(frontier_capacity=64, first_pass_frontier=2, retry_share=1.0)
+    for name, cfg in (("sphere_700", one_pass), ("identical", one_pass), ("coplanar", one_pass),
+                      ("one_point", one_pass), ("sphere_700", two_pass), ("coplanar", two_pass)):
         xyz, alive = padded(name)
         tree = build_tree(xyz, alive, cfg)
         o, d = hard_rays(tree, xyz, alive, n_boxes=3)
 
-        def loss(origin):
+        def loss(origin, d=d, tree=tree, cfg=cfg):
             rays = make_rays(np.zeros((1, 3)), np.ones((1, 3)))
-            rays = rays.replace(origin=origin, direction=jnp.asarray(d), near=jnp.zeros(len(d)), far=jnp.full(len(d), 1e3))
+            rays = rays.replace(origin=origin, direction=jnp.asarray(d), near=jnp.zeros(len(d)),
+                                far=jnp.full(len(d), 1e3))
             seg = intersect(tree, rays, cfg)
             return jnp.sum(jnp.where(seg.valid, seg.t_hi - seg.t_lo + 0.1 * seg.t_lo, 0.0))
 

@@ -12,9 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ne_jax.geometry import KDTreeConfig, PointState, build_tree, intersect, knn_interpolate, knn_neighbors, knn_weights
-
 from ne_jax.data.rays import Rays
+from ne_jax.geometry import KDTreeConfig, PointState, build_tree, intersect, knn_interpolate, knn_neighbors, knn_weights
 
 from .clouds import CLOUDS, hard_rays, make_rays, padded, sphere
 from .reference import interpolate_reference, knn_reference
@@ -62,7 +61,8 @@ def check_against_reference(state, tree, pts, node, valid, cfg, exact):
     checked = 0
     for i in np.flatnonzero(use):
         cand = None if exact else np.asarray(tree.candidates)[nodes[i] - tree.first_candidate_node]
-        ri, rw, gap = knn_reference(xyz, np.asarray(state.alive), np.asarray(state.conf_logit), P[i], cfg.knn_k, eps, cand)
+        ri, rw, gap = knn_reference(xyz, np.asarray(state.alive), np.asarray(state.conf_logit), P[i], cfg.knn_k, eps,
+                                    cand)
         dk = np.linalg.norm(xyz[ri[-1]] - P[i]) if ri.size else 0.0
         got = dict(zip(idx[i][ok[i]].tolist(), w[i][ok[i]].tolist()))
         if gap <= 1e-5 * (1 + dk):
@@ -70,9 +70,11 @@ def check_against_reference(state, tree, pts, node, valid, cfg, exact):
             # distances, then score the chosen set with the reference weights.
             gi = np.asarray(sorted(got), np.int64)
             np.testing.assert_allclose(
-                np.sort(np.linalg.norm(xyz[gi] - P[i], axis=1)), np.sort(np.linalg.norm(xyz[ri] - P[i], axis=1)), atol=1e-5 * (1 + dk)
+                np.sort(np.linalg.norm(xyz[gi] - P[i], axis=1)), np.sort(np.linalg.norm(xyz[ri] - P[i], axis=1)),
+                atol=1e-5 * (1 + dk),
             )
-            ri, rw, _ = knn_reference(xyz, np.asarray(state.alive), np.asarray(state.conf_logit), P[i], cfg.knn_k, eps, gi)
+            ri, rw, _ = knn_reference(xyz, np.asarray(state.alive), np.asarray(state.conf_logit), P[i], cfg.knn_k, eps,
+                                      gi)
         assert sorted(got) == sorted(ri.tolist()), i
         np.testing.assert_allclose([got[j] for j in ri], rw, atol=2e-6)
         assert np.all(w[i][~ok[i]] == 0)
@@ -174,7 +176,11 @@ def test_points_deleted_after_build_are_ignored():
     none = state.delete(jnp.asarray(cand))  # every candidate dead: zeros, finite gradients
     vals, nb = knn_interpolate(none, tree, q, node, CFG)
     assert not np.asarray(nb.valid).any() and np.all(np.asarray(vals["feature"]) == 0)
-    g_ = jax.grad(lambda f: jnp.sum(knn_interpolate(none.replace(feature=f), tree, q, node, CFG)[0]["feature"]))(none.feature)
+
+    def feature_sum(f):
+        return jnp.sum(knn_interpolate(none.replace(feature=f), tree, q, node, CFG)[0]["feature"])
+
+    g_ = jax.grad(feature_sum)(none.feature)
     assert np.all(np.isfinite(np.asarray(g_)))
 
 
@@ -186,7 +192,8 @@ def test_identity_ist_and_custom_values():
     pts, seg = samples_from_rays(tree, xyz, alive, CFG)
     vals, nb = knn_interpolate(state, tree, pts, seg.node, CFG)
     m = np.asarray(seg.valid)
-    np.testing.assert_allclose(np.asarray(vals["ist"])[m], np.broadcast_to(np.eye(3), np.asarray(vals["ist"])[m].shape), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(vals["ist"])[m], np.broadcast_to(np.eye(3), np.asarray(vals["ist"])[m].shape),
+                               atol=1e-6)
     ones, _ = knn_interpolate(state, tree, pts, seg.node, CFG, values=jnp.ones((state.capacity, 2)))
     np.testing.assert_allclose(np.asarray(ones)[m], 1.0, rtol=1e-6)
     with pytest.raises(ValueError, match=r"values: expected leaves of shape \[C=1024, \.\.\.\], found shape \(5, 2\)"):
@@ -241,7 +248,8 @@ def test_no_recompilation():
     st.lists(st.booleans(), min_size=6, max_size=6),
 )
 def test_knn_weights_properties(logits, dists, valid):
-    w = np.asarray(knn_weights(jnp.asarray(logits, jnp.float32), jnp.asarray(dists, jnp.float32), jnp.asarray(valid), 1e-6))
+    w = np.asarray(knn_weights(jnp.asarray(logits, jnp.float32), jnp.asarray(dists, jnp.float32), jnp.asarray(valid),
+                               1e-6))
     v = np.asarray(valid)
     assert np.all(np.isfinite(w)) and np.all(w >= 0) and np.all(w[~v] == 0)
     if v.any():

@@ -17,7 +17,8 @@ def _setup(name, seed=0, b=40, s=6):
     cfg = KDTreeConfig.tiny()
     rng = np.random.default_rng(seed)
     state = PointState.from_numpy(np.where(alive[:, None], xyz, 0.0).astype(np.float32), feature_dim=5)
-    state = state.replace(alive=jnp.asarray(alive), feature=jnp.asarray(rng.normal(size=state.feature.shape), jnp.float32),
+    state = state.replace(alive=jnp.asarray(alive),
+                          feature=jnp.asarray(rng.normal(size=state.feature.shape), jnp.float32),
                           conf_logit=jnp.asarray(rng.normal(size=state.conf_logit.shape), jnp.float32),
                           normal=jnp.asarray(rng.normal(size=state.normal.shape), jnp.float32))
     tree = build_tree(np.asarray(state.xyz), alive, cfg)
