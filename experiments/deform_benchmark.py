@@ -176,8 +176,10 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
         "unedited": unedited, "commit": _commit(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "command": "python experiments/deform_benchmark.py " + " ".join(
-            f"--{k.replace('_', '-')} {' '.join(v) if isinstance(v, list) else v}" for k, v in vars(args).items()
-            if v not in (None, False) and k not in ("runs", "root")) + " --runs DIR",
+            f"--{k.replace('_', '-')}" + ("" if v is True else f" {' '.join(v) if isinstance(v, list) else v}")
+            for k, v in vars(args).items()
+            if v not in (None, False) and k not in ("runs", "root")
+            and not (k == "finetune_epochs" and args.no_finetune)) + " --runs DIR",
     }
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / f"{out_name}.json", report)
