@@ -23,7 +23,7 @@ def summary(sources: list[Path]) -> str:
         data = json.loads(path.read_text(encoding="utf-8"))
         models += data["models"]
         notes.append(f"- `{path.name}`: commit {data['commit']}, `{data['command']}`")
-    names = [f"{m['run']} ({m['preset']})" for m in models]
+    names = [f"{Path(m['scene_dir']).name} ({m['preset']})" for m in models]
     lines = ["PSNR (dB) between the edited model seen from moved test cameras and the unedited model "
              "(120 = identical renders); each cell: tree carried / tree rebuilt (paper).", "",
              "| motion | " + " | ".join(names) + " |", "|---|" + "---:|" * len(models)]
@@ -35,7 +35,8 @@ def summary(sources: list[Path]) -> str:
         rigid = [r for r in m["motions"] if r["kind"] == "rigid"]
         worst.append(f"{min(r['carry'] for r in rigid):.1f} / {min(r['rebuild'] for r in rigid):.1f}")
     lines += ["| **worst rigid motion** | " + " | ".join(worst) + " |", "",
-              "Models: " + "; ".join(f"{m['run']}: {m['points']} points, {m['views']} test views" for m in models)
+              "Models: " + "; ".join(f"{Path(m['scene_dir']).name}: {m['points']} points, {m['views']} test views"
+                                     for m in models)
               + ".", "", "Sources:", *notes, ""]
     return "\n".join(lines)
 
