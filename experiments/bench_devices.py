@@ -124,15 +124,9 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     }
 
 
-def _git(*args) -> str:
-    try:
-        return subprocess.run(["git", *args], capture_output=True, text=True, check=True,
-                              cwd=Path(__file__).resolve().parent).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def main(argv=None) -> None:
+    from ne_jax import provenance
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=10, help="training steps per timed block")
     ap.add_argument("--res", type=int, default=64, help="test-image size (default: the tiny benchmark's 64)")
@@ -174,10 +168,10 @@ def main(argv=None) -> None:
         r["render_speedup"] = round(one["render_s"] / r["render_s"], 2)
     command = "python experiments/bench_devices.py " + " ".join(
         f"--{k} {v}" for k, v in vars(args).items() if k != "worker")
-    modified = [line[3:] for line in _git("status", "--porcelain", "--untracked-files=no").splitlines() if line.strip()]
+    modified = provenance.modified()
     dirty = bool(modified)
     report = {"what": "tiny training step and test-image render: 1 host device vs one per core (ne_jax's default)",
-              "commit": _git("rev-parse", "HEAD"), "worktree_modified": modified, "command": command,
+              "commit": provenance.commit(), "worktree_modified": modified, "command": command,
               "seconds": round(time.perf_counter() - t_start, 1), "rows": rows,
               "machine": {"usable_cores": cores, "cpu_count": os.cpu_count(), "platform": platform.platform(),
                           "python": platform.python_version()},

@@ -302,9 +302,9 @@ def build_table(rows) -> str:
 
 
 def build_main(args):
-    import subprocess
-
     import jax
+
+    from ne_jax import provenance
 
     ctx = mp.get_context("spawn")
     rows = []
@@ -315,15 +315,12 @@ def build_main(args):
     md = build_table(rows)
     print(md)
 
-    def git(*a):
-        return subprocess.run(["git", *a], cwd=os.path.dirname(HERE), capture_output=True, text=True).stdout.strip()
-
     meta = {
         "command": "python experiments/bench_geometry.py --build"
         + (f" --repeat {args.repeat}" if args.repeat != 3 else "")
         + (" --cases " + " ".join(args.cases) if args.cases else ""),
-        "commit": git("rev-parse", "HEAD"),
-        "kdtree_py_modified": bool(git("status", "--porcelain", "--", "ne_jax/geometry/kdtree.py")),
+        "commit": provenance.commit(),
+        "kdtree_py_modified": bool(provenance.modified("ne_jax/geometry/kdtree.py")),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__,
                     "load_average_at_end": os.getloadavg()},
         "note": "Shared 2-core CPU with other jobs running: compare ratios within one row (same process, "

@@ -22,7 +22,6 @@ import io
 import json
 import os
 import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -36,6 +35,7 @@ from ne_jax.data.synthetic import SCENES, get_scene
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
 from ne_jax.eval import evaluate_split
+from ne_jax.provenance import commit
 from ne_jax.train.loop import TrainedModel, get_run_preset, train
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -173,7 +173,7 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
         "training": {"epochs": full.epochs, "steps_per_epoch": full.steps_per_epoch,
                      "batch_size": full.sampler.batch_size},
         "background": full.background, "seconds": round(seconds, 1), "records": records,
-        "unedited": unedited, "commit": _commit(),
+        "unedited": unedited, "commit": commit(short=True),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "command": "python experiments/deform_benchmark.py " + " ".join(
             f"--{k.replace('_', '-')}" + ("" if v is True else f" {' '.join(v) if isinstance(v, list) else v}")
@@ -215,14 +215,6 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
                          + f" | {mean_of(own, 'psnr')} | {mean_of(own, 'ssim')} | {mean_of(own, 'lpips')} |")
         lines.append("")
     atomic_write_text(RESULTS / f"{out_name}.md", "\n".join(lines))
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def write_figure(out_name: str, figure: dict, variants) -> None:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import subprocess
 import time
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import Edit, rigid_scene
 from ne_jax.edit.fidelity import equivariance, exact_rigid_points
 from ne_jax.edit.ist import ISTConfig
+from ne_jax.provenance import commit
 from ne_jax.render.renderer import PointScene
 from ne_jax.train.loop import load_trained
 
@@ -135,19 +135,11 @@ def diagnose(model, cameras, pts, pivot, ref, log) -> list[dict]:
     return rows
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def write(out: str, results: list[dict], command: str) -> None:
     RESULTS.mkdir(exist_ok=True)
-    atomic_write_json(RESULTS / f"{out}.json", {"commit": _commit(), "command": command, "models": results})
+    atomic_write_json(RESULTS / f"{out}.json", {"commit": commit(short=True), "command": command, "models": results})
     lines = [f"Equivariance of edits: PSNR (dB) between the edited model seen from moved test cameras and the "
-             f"unedited model ({_commit()}; re-run: `{command}`). 120 = identical renders.", ""]
+             f"unedited model ({commit(short=True)}; re-run: `{command}`). 120 = identical renders.", ""]
     for res in results:
         lines += [f"**{res['run']}** (preset `{res['preset']}`, {res['views']} test views, {res['points']} points)", "",
                   "| motion | tree carried | tree rebuilt (paper) |", "|---|---:|---:|"]
