@@ -15,5 +15,5 @@ def test_commit_is_a_hash_or_unknown():
 
 def test_modified_lists_paths_relative_to_the_checkout():
     for path in provenance.modified():
-        assert not path.startswith((" ", "/")) and "/" in path or "." in path
+        assert path and not path.startswith((" ", "/"))
     assert provenance.modified("no/such/path") == []
