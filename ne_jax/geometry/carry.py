@@ -106,11 +106,11 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
         alive: ``[C]`` bool after the edit: a subset of the tree's points (an edit that adds points
             needs a rebuild).
         cfg: the tree's config (margins, candidate-set width).
-        tear_factor: a subtree whose rigid fit leaves a member farther than this many point
-            spacings from its edited position is torn: world boxes, new candidate sets.
+        tear_factor: a subtree whose similarity fit leaves a member farther than this many point
+            spacings from its edited position is torn: rebuilt locally, with new candidate sets.
         oriented, recompute_candidates: analysis switches (module docstring).
-        report: optional dict receiving ``subtrees``, ``torn``, ``max_residual`` (in spacings) and
-            ``emptied`` (nodes that lost all their points).
+        report: optional dict receiving ``subtrees``, ``torn``, ``max_residual`` (in spacings),
+            ``scale`` (the length unit's factor) and ``emptied`` (nodes that lost all their points).
 
     Raises:
         ValueError: shapes, non-finite edited positions, or alive points the tree does not hold.
