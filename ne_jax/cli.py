@@ -5,7 +5,7 @@ Sub-commands:
                   train one scene, evaluate its test views and render an orbit video
   make-benchmark  generate the procedural editing benchmark for a preset
   train           train a model of a scene folder (NeRF Synthetic layout) into a run directory
-  eval            PSNR and SSIM of a trained run on a split (per view and mean), with the images
+  eval            PSNR, SSIM and LPIPS of a trained run on a split (per view and mean), with the images
   render          render a trained run's split views to PNGs, or a camera orbit to MP4/GIF
   export          write a trained run's point cloud (normals, confidences, colours) to PLY
   edit            move/delete a trained run's points (a benchmark edit by name, or a .npy/.ply file)
@@ -72,7 +72,9 @@ def _evaluate(run, params, scene, scene_dir: Path, split_name: str, out: Path, b
 
 
 def _print_eval(report: dict, out: Path) -> None:
-    print(f"{report['split']}: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f} "
+    lp = report.get("lpips")
+    lpips = "" if lp is None else f", LPIPS {lp:.4f} ({report.get('lpips_net')})"
+    print(f"{report['split']}: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f}{lpips} "
           f"(mean of {report['num_views']} views, background {report['background']}) -> {out}")
 
 
@@ -220,6 +222,7 @@ def _cmd_morph(args) -> int:
 def _cmd_demo(args) -> int:
     from ne_jax.data.benchmark import generate_benchmark
     from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.data.synthetic import get_scene
     from ne_jax.eval import orbit_cameras_for, render_views, write_video
     from ne_jax.train.loop import get_run_preset, train
     from ne_jax.viz import contact_sheet
@@ -230,7 +233,8 @@ def _cmd_demo(args) -> int:
     report = generate_benchmark(out / "benchmark", args.preset, None, args.seed)
     sheet = contact_sheet(out / "benchmark", out / "contact_sheet.png",
                           title=f"ne_jax procedural benchmark, preset {args.preset!r} (test view at 45 degrees)")
-    print(f"      {len(report['scenes'])} scenes x (original + 4 edits) in {report['seconds']:.1f} s")
+    edits = len(get_scene(next(iter(report["scenes"]))).edits)
+    print(f"      {len(report['scenes'])} scenes x (original + {edits} edits) in {report['seconds']:.1f} s")
     scene_dir = out / "benchmark" / args.scene
     run = get_run_preset("tiny").replace(seed=args.seed)
     print(f"[2/4] training scene {args.scene!r} (preset 'tiny': {run.epochs} epochs x {run.steps_per_epoch} steps, "
@@ -307,7 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--scene", default=None, help="scene folder (default: the one the run was trained on)")
         return p
 
-    ev = run_parser("eval", "PSNR/SSIM of a trained run on a split")
+    ev = run_parser("eval", "PSNR/SSIM/LPIPS of a trained run on a split")
     ev.add_argument("--split", default="test", choices=SCENE_SPLITS)
     ev.add_argument("--background", default=None, choices=["white", "black"], help="default: the run's")
     ev.add_argument("--out", default=None, help="output folder (default: RUN/eval_<split>)")
