@@ -18,11 +18,13 @@ and ``.md`` after every (scene, edit), and a figure grid ``deform_benchmark_<pre
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import io
 import json
 import os
 import platform
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +34,7 @@ from ne_jax.data.benchmark import generate_benchmark, get_preset
 from ne_jax.data.nerf_synthetic import composite, load_split
 from ne_jax.data.png import write_image
 from ne_jax.data.synthetic import SCENES, get_scene
+from ne_jax.edit.apply import EditConfig
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
 from ne_jax.eval import evaluate_split
@@ -152,9 +155,11 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
         key = (model.run.name, v.ist, v.edit)  # Naive Plotting plots the fine-tuned model without IST
         t0 = time.perf_counter()
         if key not in finetuned:
-            kept = (("" if v.edit.reestimate_normals else "-keptnormals")
-                    + ("-rebuilt" if v.edit.tree == "rebuild" else ""))
-            ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}{kept}"
+            changed = "".join(  # the edit settings that differ from the default, one folder each
+                f"-{f.name}={val if isinstance(val, (bool, int, float, str)) else zlib.crc32(repr(val).encode())}"
+                for f in dataclasses.fields(v.edit)
+                if (val := getattr(v.edit, f.name)) != getattr(EditConfig(), f.name))
+            ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}{changed}"
             result = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
                               progress=False, log=lambda s: None)
             finetuned[key] = TrainedModel(run=result.run, state=result.state, scene=result.scene,

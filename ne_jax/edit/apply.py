@@ -55,8 +55,8 @@ class EditConfig:
     keeps the trained partition and candidate sets and moves the boxes with their points
     (:mod:`ne_jax.geometry.carry`); ``"rebuild"`` builds a new tree on the edited cloud (the paper)."""
     tear_factor: float = 2.0
-    """``"carry"``: a subtree whose points the best rigid motion misses by more than this many
-    point spacings is torn (re-boxed in world coordinates)."""
+    """``"carry"``: a subtree whose points its best similarity fit misses by more than this many
+    point spacings is torn (rebuilt locally on the edited positions)."""
 
     def __post_init__(self):
         if self.tree not in ("carry", "rebuild"):

@@ -197,7 +197,7 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     # slots, boxes of partition cells as build_tree makes them).
     perm_new = perm.copy()
     split_axis, split_value = np.asarray(tree.split_axis).copy(), np.asarray(tree.split_value, np.float64).copy()
-    valid = np.asarray(tree.valid) & (count_all > 0)
+    valid = np.asarray(tree.valid).copy()  # emptied nodes are cleared below, once every count is final
     sub_depth = depth - f
     resplit = np.flatnonzero(torn & oriented)
     if resplit.size:  # the released code's "too spread out" rule for the boxes made here
