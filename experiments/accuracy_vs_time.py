@@ -252,7 +252,7 @@ def quadrature_error(q: dict, rule: str, kind: str) -> list[float]:
 
 
 def glossy_points(n: int, seed: int = 0):
-    from ne_jax.data import synthetic as S
+    from ne_jax.benchmark import scenes as S
 
     smp = S.surface_samples(S.get_scene("glossy", 1.0), n, seed=seed)
     return smp["xyz"].astype(np.float32), smp["normal"].astype(np.float32)
@@ -262,14 +262,15 @@ def orbit_rays(res: int, views: int, dtype=np.float32):
     """Pixel-centre rays of ``views`` orbit cameras of the benchmark scenes, in ``dtype``."""
     import jax.numpy as jnp
 
-    from ne_jax.data import synthetic as S
+    from ne_jax.data import cameras
     from ne_jax.data.rays import Rays, pixel_centres, rays_through_pixels
 
-    focal = 0.5 * res / math.tan(0.5 * S.CAMERA_ANGLE_X)
+    focal = 0.5 * res / math.tan(0.5 * cameras.CAMERA_ANGLE_X)
     pix = jnp.asarray(pixel_centres(res, res), dtype)
     parts = [rays_through_pixels(jnp.asarray(c2w, dtype), jnp.asarray(focal, dtype), jnp.asarray(focal, dtype),
-                                 jnp.asarray(0.5 * res, dtype), jnp.asarray(0.5 * res, dtype), pix, S.NEAR, S.FAR)
-             for c2w in S.orbit_cameras(views)]
+                                 jnp.asarray(0.5 * res, dtype), jnp.asarray(0.5 * res, dtype), pix,
+                                 cameras.NEAR, cameras.FAR)
+             for c2w in cameras.orbit_cameras(views)]
     def cat(name):
         return jnp.concatenate([getattr(r, name) for r in parts])
     return Rays(origin=cat("origin"), direction=cat("direction"), near=cat("near"), far=cat("far"))

@@ -595,6 +595,7 @@ def run_image(run_dir: Path, out_dir: Path, command: str, edit: str = "bend", sc
     """Load the model, edit it, measure both targets, write JSON, PNG and Markdown; returns the results."""
     import jax
 
+    from ne_jax.benchmark.edits import benchmark_edit
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.edit.model import edit_model
     from ne_jax.train.loop import load_trained
@@ -616,7 +617,7 @@ def run_image(run_dir: Path, out_dir: Path, command: str, edit: str = "bend", sc
     truth = scene_dir / "edits" / edit
     if not (truth / "transforms_test.json").is_file():
         raise FileNotFoundError(f"edit {edit!r}: expected the edited scene's ground truth in {truth}")
-    edited, edit_report = edit_model(model, edit, ist=True, scene_dir=truth)
+    edited, edit_report = edit_model(model, benchmark_edit(scene_dir, edit)[0], ist=True, scene_dir=truth, label=edit)
     res = {"study": "image", "command": command, "sizes": dataclasses.asdict(sz), "run": str(run_dir),
            "preset": model.run.name, "edit": edit, "scene_dir": str(scene_dir),
            "edit_report": {k: v for k, v in edit_report.items() if isinstance(v, (int, float, str, bool))},

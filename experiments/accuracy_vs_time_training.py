@@ -50,7 +50,7 @@ if str(HERE) not in sys.path:
 
 from accuracy_vs_time_image import SHARED_NOTE, _scaled_samples, best_time, pareto_front  # noqa: E402
 
-from ne_jax.train.checkpoint import config_key  # noqa: E402
+from ne_jax.config_json import config_key  # noqa: E402
 
 TWO_PASS_SHARE = 0.25
 """Retry share of the two-pass candidate: the smallest that kept 50 training steps of the `default`

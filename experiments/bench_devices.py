@@ -46,9 +46,9 @@ def worker(steps: int, res: int, repeats: int) -> dict:
 
     import ne_jax  # noqa: F401  (first: the host device count is set on import)
     from ne_jax._platform import usable_cores
-    from ne_jax.data.benchmark import get_preset
+    from ne_jax.benchmark.generate import get_preset
+    from ne_jax.data.cameras import orbit_cameras
     from ne_jax.data.rays import Camera, camera_rays
-    from ne_jax.data.synthetic import orbit_cameras
     from ne_jax.devices import default_mesh
     from ne_jax.geometry.points import PointState
     from ne_jax.render.renderer import PointScene, render_image

@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ne_jax.data import synthetic as S
+from ne_jax.benchmark import scenes as S
+from ne_jax.data import cameras
 from ne_jax.data.rays import Camera
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig, render_image
@@ -44,18 +45,18 @@ def make_points(n: int) -> PointState:
 
 def time_render(cfg: RenderConfig, scene: PointScene, repeats: int) -> dict:
     params = init_color_model(cfg.shading, jax.random.key(1))
-    cams = [Camera.from_fov(c, RES, RES, S.CAMERA_ANGLE_X) for c in S.orbit_cameras(4)]
+    cams = [Camera.from_fov(c, RES, RES, cameras.CAMERA_ANGLE_X) for c in cameras.orbit_cameras(4)]
     bg = jnp.ones(3)
     t0 = time.perf_counter()
-    out = render_image(cfg, params, scene, cams[0], bg, S.NEAR, S.FAR)
+    out = render_image(cfg, params, scene, cams[0], bg, cameras.NEAR, cameras.FAR)
     jax.block_until_ready(out)
     first = time.perf_counter() - t0
     for cam in cams[1:]:  # settle any capacity growth (compiles once per grown budget)
-        jax.block_until_ready(render_image(cfg, params, scene, cam, bg, S.NEAR, S.FAR))
+        jax.block_until_ready(render_image(cfg, params, scene, cam, bg, cameras.NEAR, cameras.FAR))
     best, best_cpu = np.inf, np.inf
     for i in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        out = render_image(cfg, params, scene, cams[i % len(cams)], bg, S.NEAR, S.FAR)
+        out = render_image(cfg, params, scene, cams[i % len(cams)], bg, cameras.NEAR, cameras.FAR)
         jax.block_until_ready(out)
         best = min(best, time.perf_counter() - t0)
         best_cpu = min(best_cpu, time.process_time() - c0)

@@ -4,7 +4,7 @@
 For each benchmark scene (and the glossy scene's bend) one camera of the test orbit is rendered at
 the ``default`` preset's resolution by
 
-* ``RayCaster`` (``ne_jax.data.synthetic``) at ``ss`` = 2 and 3: time per image, bit-for-bit
+* ``RayCaster`` (``ne_jax.benchmark.scenes``) at ``ss`` = 2 and 3: time per image, bit-for-bit
   repeatability, and the difference to the same renderer at ``ss`` = 8 (its own converged image:
   what is left is edge aliasing, not noise);
 * Mitsuba 3 (``scalar_rgb`` unless a usable LLVM >= 16 is present, see :func:`choose_variant`) with
@@ -41,9 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ne_jax.data import meshes as M
-from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import get_preset
+from ne_jax.benchmark import meshes as M
+from ne_jax.benchmark import raycaster
+from ne_jax.benchmark import scenes as S
+from ne_jax.benchmark.generate import get_preset
+from ne_jax.data import cameras
 
 CPU_SECONDS: list[float] = []  # process CPU time of each Mitsuba render, in call order
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -170,8 +172,8 @@ def jsonable(x):
 
 
 def sky_envmap(width: int = 256) -> np.ndarray:
-    """Lat-long bitmap ``[width/2, width, 3]`` of ``S.sky()`` without its sun lobe (the sun is the
-    first directional light), scaled so its mean radiance equals ``S.AMBIENT`` (the ray caster's
+    """Lat-long bitmap ``[width/2, width, 3]`` of ``raycaster.sky()`` without its sun lobe (the sun is the
+    first directional light), scaled so its mean radiance equals ``raycaster.AMBIENT`` (the ray caster's
     ambient term). Pixel (u, v) holds the radiance from Mitsuba's envmap direction
     ``(sin(pi v) sin(2 pi u), cos(pi v), -sin(pi v) cos(2 pi u))`` (envmap ``to_world`` identity)."""
     h = width // 2
@@ -182,15 +184,15 @@ def sky_envmap(width: int = 256) -> np.ndarray:
     d = np.stack([st * np.sin(2 * np.pi * uu), np.cos(np.pi * vv), -st * np.cos(2 * np.pi * uu)], -1).reshape(-1, 3)
     t = np.clip(0.5 + 0.5 * d[:, 2], 0.0, 1.0)[:, None]
     base = (1 - t) * np.array([0.12, 0.10, 0.08]) + t * np.array([0.45, 0.6, 0.9])
-    # The same gradient as S.sky() (check_envmap compares them); the sun lobe is left out here.
+    # The same gradient as raycaster.sky() (check_envmap compares them); the sun lobe is left out here.
     weights = st.reshape(-1)  # solid angle of each pixel, up to a constant
     mean_lum = float(np.sum(weights * (base @ np.array([0.2126, 0.7152, 0.0722]))) / np.sum(weights))
-    return (base * (S.AMBIENT / mean_lum)).reshape(h, width, 3).astype(np.float32), d.reshape(h, width, 3)
+    return (base * (raycaster.AMBIENT / mean_lum)).reshape(h, width, 3).astype(np.float32), d.reshape(h, width, 3)
 
 
 def check_envmap(mi) -> None:
     """Evaluate Mitsuba's envmap emitter in a few world directions and check it returns
-    ``S.sky()`` (less its sun lobe) times one constant: catches a slip in the direction convention."""
+    ``raycaster.sky()`` (less its sun lobe) times one constant: catches a slip in the direction convention."""
     import drjit as dr
 
     env, _ = sky_envmap()
@@ -198,9 +200,9 @@ def check_envmap(mi) -> None:
     dirs = np.random.default_rng(0).normal(size=(24, 3))
     dirs = np.concatenate([[[0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0]], dirs])
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    sun = np.asarray(S.LIGHTS[0].direction, float)
+    sun = np.asarray(raycaster.LIGHTS[0].direction, float)
     sun /= np.linalg.norm(sun)
-    want = S.sky(dirs) - 2.0 * np.clip(dirs @ sun, 0.0, 1.0)[:, None] ** 200
+    want = raycaster.sky(dirs) - 2.0 * np.clip(dirs @ sun, 0.0, 1.0)[:, None] ** 200
     got = []
     for d in dirs:
         si = dr.zeros(mi.SurfaceInteraction3f)
@@ -208,7 +210,8 @@ def check_envmap(mi) -> None:
         got.append(np.array(emitter.eval(si), dtype=np.float64).reshape(-1)[:3])
     ratio = np.array(got) / want
     if not np.allclose(ratio, np.median(ratio), rtol=0.03):
-        raise AssertionError(f"Mitsuba envmap does not reproduce S.sky(): ratios {ratio.min():.3f}..{ratio.max():.3f}")
+        raise AssertionError("Mitsuba envmap does not reproduce raycaster.sky(): "
+                             f"ratios {ratio.min():.3f}..{ratio.max():.3f}")
 
 
 def mitsuba_bsdf(material: S.Material) -> dict:
@@ -243,7 +246,7 @@ def mitsuba_scene(mi, edited: S.EditedMesh, materials, c2w: np.ndarray, res: int
         remap[used] = np.arange(len(used))
         # Albedo from the texture at rest positions (textures follow the surface), linearised the
         # same way the ray caster does it (gamma 2.2), one colour per vertex.
-        albedo = np.clip(material.albedo(edited.rest[used]), 0.0, 1.0) ** S.GAMMA
+        albedo = np.clip(material.albedo(edited.rest[used]), 0.0, 1.0) ** raycaster.GAMMA
         props = mi.Properties()
         props["bsdf"] = mi.load_dict(mitsuba_bsdf(material))
         mesh = mi.Mesh(f"part{i}", len(used), len(faces), props=props, has_vertex_normals=True)
@@ -263,7 +266,7 @@ def mitsuba_scene(mi, edited: S.EditedMesh, materials, c2w: np.ndarray, res: int
         "integrator": {"type": "path", "max_depth": 8, "hide_emitters": True},
         "sensor": {
             "type": "perspective",
-            "fov": float(np.degrees(S.CAMERA_ANGLE_X)),
+            "fov": float(np.degrees(cameras.CAMERA_ANGLE_X)),
             "fov_axis": "x",
             # NeRF/Blender c2w looks along -z with +x right; Mitsuba's camera looks along +z with
             # +x to the left.
@@ -275,7 +278,7 @@ def mitsuba_scene(mi, edited: S.EditedMesh, materials, c2w: np.ndarray, res: int
         "sky": {"type": "envmap", "bitmap": mi.Bitmap(env)},
         **parts,
     }
-    for k, light in enumerate(S.LIGHTS):
+    for k, light in enumerate(raycaster.LIGHTS):
         d = np.asarray(light.direction, float)
         d /= np.linalg.norm(d)
         # The ray caster adds intensity * albedo * cos; a diffuse BSDF gives albedo / pi * E * cos.
@@ -295,7 +298,7 @@ def mitsuba_render(mi, scene, spp: int, seed: int) -> tuple[np.ndarray, float, i
     img[bad] = 0.0
     rgb, a = img[..., :3], np.clip(img[..., 3:4], 0.0, 1.0)
     lin = np.where(a > 0, rgb / np.maximum(a, 1e-8), 0.0)  # Mitsuba's film is premultiplied
-    display = np.clip(lin, 0.0, 1.0) ** (1.0 / S.GAMMA)
+    display = np.clip(lin, 0.0, 1.0) ** (1.0 / raycaster.GAMMA)
     return np.concatenate([display, a], -1), seconds, int(bad.sum())
 
 
@@ -349,7 +352,7 @@ def main(argv=None) -> int:
     check_envmap(mi)
 
     configs = [(name, None) for name in S.SCENES] + [("glossy", "bend")]
-    c2w = S.orbit_cameras(preset.test_views)[args.view]
+    c2w = cameras.orbit_cameras(preset.test_views)[args.view]
     results = []
     images = {}
     t_all = time.perf_counter()
@@ -362,15 +365,15 @@ def main(argv=None) -> int:
 
         # --- ray caster
         t0 = time.perf_counter()
-        caster = S.RayCaster(edited, scene.materials)
+        caster = raycaster.RayCaster(edited, scene.materials)
         row["raycaster_build_s"] = time.perf_counter() - t0
-        ref_rc = caster.render(c2w, res, res, S.CAMERA_ANGLE_X, ref_ss)
+        ref_rc = caster.render(c2w, res, res, cameras.CAMERA_ANGLE_X, ref_ss)
         rc = {}
         for ss in ss_list:
             times, cpu, renders = [], [], []
             for _ in range(3):
                 t0, c0 = time.perf_counter(), time.process_time()
-                renders.append(caster.render(c2w, res, res, S.CAMERA_ANGLE_X, ss))
+                renders.append(caster.render(c2w, res, res, cameras.CAMERA_ANGLE_X, ss))
                 times.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
             img = renders[0]

@@ -30,13 +30,14 @@ from pathlib import Path
 import numpy as np
 
 from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
-from ne_jax.data.benchmark import generate_benchmark, get_preset
+from ne_jax.benchmark.edits import benchmark_edit
+from ne_jax.benchmark.generate import generate_benchmark, get_preset
+from ne_jax.benchmark.scenes import SCENES, get_scene
+from ne_jax.benchmark.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
 from ne_jax.data.nerf_synthetic import composite, load_split
 from ne_jax.data.png import write_image
-from ne_jax.data.synthetic import SCENES, get_scene
 from ne_jax.edit.apply import EditConfig
 from ne_jax.edit.model import edit_model, finetune
-from ne_jax.edit.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
 from ne_jax.eval import evaluate_split
 from ne_jax.provenance import commit
 from ne_jax.train.loop import TrainedModel, get_run_preset, train
@@ -146,7 +147,8 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
     """One record: edit ``model`` for variant ``v``, score zero-shot, fine-tune (shared by variants
     with the same model and IST setting through ``finetuned``) and score again."""
     t0 = time.perf_counter()
-    edited, rep = edit_model(model, edit, ist=v.ist, cfg=v.edit, scene_dir=truth)
+    edited, rep = edit_model(model, benchmark_edit(model.scene_dir, edit)[0], ist=v.ist, cfg=v.edit, scene_dir=truth,
+                             label=edit)
     zero, image = score(edited, v, truth)
     rec = {"scene": scene, "edit": edit, "variant": v.name, "zero_shot": zero,
            "edit_report": {k: rep[k] for k in ("moved", "deleted", "good", "filled", "identity")},

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ne_jax.data.benchmark import generate_benchmark, get_preset
+from ne_jax.benchmark.generate import generate_benchmark, get_preset
+from ne_jax.benchmark.scenes import SCENES
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.data.synthetic import SCENES
 from ne_jax.pointcloud.init import CarveConfig, Views, carve_visual_hull, ground_truth_cloud
 from ne_jax.pointcloud.metrics import chamfer, normal_agreement
 from ne_jax.pointcloud.normals import ORIENTATIONS, NormalConfig, estimate_normals

@@ -17,7 +17,7 @@ import platform
 import shutil
 from pathlib import Path
 
-from ne_jax.data.benchmark import generate_benchmark, get_preset, list_variants
+from ne_jax.benchmark.generate import generate_benchmark, get_preset, list_variants
 from ne_jax.viz import contact_sheet
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from ne_jax.atomic import atomic_write_json, atomic_write_text
-from ne_jax.data.benchmark import generate_benchmark, get_preset
+from ne_jax.benchmark.generate import generate_benchmark, get_preset
+from ne_jax.benchmark.scenes import SCENES
+from ne_jax.benchmark.variants import get_variant, variant_run
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.png import write_image
-from ne_jax.data.synthetic import SCENES
-from ne_jax.edit.variants import get_variant, variant_run
 from ne_jax.morph import MorphSettings, morph_models, strip
 from ne_jax.train.loop import TrainedModel, get_run_preset, load_trained, train
 

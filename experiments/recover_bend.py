@@ -29,8 +29,8 @@ import numpy as np
 import optax
 
 from ne_jax.atomic import atomic_write_json
-from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import generate_benchmark
+from ne_jax.benchmark import scenes as S
+from ne_jax.benchmark.generate import generate_benchmark
 from ne_jax.data.nerf_synthetic import load_split, parse_background, split_rays
 from ne_jax.edit.apply import edited_render_config
 from ne_jax.edit.differentiable import (
@@ -41,7 +41,7 @@ from ne_jax.edit.differentiable import (
 from ne_jax.train.loop import RunConfig, fit_segment_budget, load_trained, train
 
 RESULTS = Path(__file__).resolve().parent / "results"
-# The glossy scene's bend (ne_jax/data/synthetic.py make_glossy): everything but the angle is known.
+# The glossy scene's bend (ne_jax/benchmark/scenes.py make_glossy): everything but the angle is known.
 BEND = {"center": (0.0, 0.0, -0.8), "along": (0.0, 0.0, 1.0), "toward": (1.0, 0.0, 0.0), "length": 1.6}
 
 

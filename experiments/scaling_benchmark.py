@@ -38,8 +38,8 @@ def worker(points: int, batch: int, res: int, repeats: int) -> dict:
     import jax
     import jax.numpy as jnp
 
+    from ne_jax.data.cameras import orbit_cameras
     from ne_jax.data.rays import Camera, camera_rays
-    from ne_jax.data.synthetic import orbit_cameras
     from ne_jax.devices import default_mesh
     from ne_jax.geometry.points import PointState
     from ne_jax.render.renderer import (

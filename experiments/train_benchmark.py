@@ -28,13 +28,13 @@ from pathlib import Path
 import numpy as np
 
 from ne_jax.atomic import atomic_write_json, atomic_write_text
-from ne_jax.data.benchmark import generate_benchmark, get_preset, seen_surface_samples
+from ne_jax.benchmark.generate import generate_benchmark, get_preset, seen_surface_samples
+from ne_jax.benchmark.scenes import SCENES
+from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.data.synthetic import SCENES
 from ne_jax.eval import evaluate_split, save_images
 from ne_jax.pointcloud.init import Views, ground_truth_cloud
 from ne_jax.pointcloud.metrics import chamfer
-from ne_jax.train.checkpoint import config_key
 from ne_jax.train.loop import get_run_preset, initial_cloud, train
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -139,7 +139,7 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
         "what": "train each benchmark scene from a visual-hull carving; test PSNR/SSIM on full images; "
                 "Chamfer distance (world units, mean of both directions) of the initial and the final cloud "
                 "to the ground-truth surface samples; the seen-surface Chamfer takes the completeness over "
-                "only the samples a training camera sees (seen_share of them; ne_jax.data.benchmark."
+                "only the samples a training camera sees (seen_share of them; ne_jax.benchmark.generate."
                 "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it "
                 "(initial cloud, epochs with "
                 "their compiles, point-cloud rounds; summed over the sittings of a resumed run)",

@@ -28,7 +28,7 @@ SCENE_SPLITS = ("train", "val", "test")
 
 
 def _cmd_make_benchmark(args) -> int:
-    from ne_jax.data.benchmark import generate_benchmark
+    from ne_jax.benchmark.generate import generate_benchmark
     from ne_jax.viz import contact_sheet
 
     report = generate_benchmark(args.out, args.preset, args.scenes, args.seed)
@@ -152,12 +152,15 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_edit(args) -> int:
+    from ne_jax.benchmark.edits import resolve_edit
     from ne_jax.edit.model import edit_model
 
     model, scene_dir = _load(args)
     model = dataclasses.replace(model, scene_dir=scene_dir)
+    edit, label, truth = resolve_edit(scene_dir, args.edit)
     out = Path(args.out)
-    edited, report = edit_model(model, args.edit, out, ist=not args.no_ist, scene_dir=args.edited_scene)
+    edited, report = edit_model(model, edit, out, ist=not args.no_ist, label=label,
+                                scene_dir=args.edited_scene if args.edited_scene is not None else truth)
     print(f"edit {report['edit']!r}: {report['moved']} points moved, {report['deleted']} deleted, "
           f"{report['alive']} alive; "
           f"IST from {report['good']} frames, {report['filled']} filled from neighbours, {report['identity']} identity "
@@ -220,9 +223,9 @@ def _cmd_morph(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from ne_jax.data.benchmark import generate_benchmark
+    from ne_jax.benchmark.generate import generate_benchmark
+    from ne_jax.benchmark.scenes import get_scene
     from ne_jax.data.nerf_synthetic import load_split
-    from ne_jax.data.synthetic import get_scene
     from ne_jax.eval import orbit_cameras_for, render_views, write_video
     from ne_jax.train.loop import get_run_preset, train
     from ne_jax.viz import contact_sheet

@@ -18,7 +18,7 @@ def contact_sheet(root, out_png, view: int | None = None, split: str = "test", b
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ne_jax.data.benchmark import list_variants
+    from ne_jax.benchmark.generate import list_variants
 
     variants = list_variants(root)
     if not variants:

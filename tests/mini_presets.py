@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from ne_jax.data.benchmark import BenchmarkPreset
+from ne_jax.benchmark.generate import BenchmarkPreset
 from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.pointcloud.optimise import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig

@@ -1,4 +1,4 @@
-"""Cameras, rays and scenes: NeRF-Synthetic-format I/O and the procedural editing benchmark."""
+"""Cameras, rays and scenes on disk: NeRF-Synthetic-format I/O and the cameras of the procedural scenes."""
 
 from ne_jax.data.rays import Camera, Rays, camera_rays, pixel_rays
 

@@ -8,76 +8,39 @@
 * :func:`finetune`: train an edited model on the edited scene's training views for a few epochs with
   the same loop as training (:func:`~ne_jax.train.loop.train`), optionally with trainable ISTs and
   point-cloud rounds (the paper: one warm-up epoch, then rounds for up to five epochs).
-* :func:`benchmark_edit`: a benchmark edit by name, looked up from the scene the model was trained on.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from ne_jax.data.synthetic import SCENES, get_scene
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import Edit
 from ne_jax.edit.targets import EditError, EditSource
 from ne_jax.train.loop import RunConfig, StartFrom, TrainedModel, TrainResult, save_trained, train
 
 
-def _scene_meta(scene_dir: Path | None) -> dict:
-    if scene_dir is None or not (Path(scene_dir) / "scene.json").is_file():
-        return {}
-    return json.loads((Path(scene_dir) / "scene.json").read_text(encoding="utf-8"))
-
-
-def benchmark_edit(scene_dir: str | Path | None, name: str) -> tuple[Edit, Path | None]:
-    """The benchmark edit ``name`` of the scene in ``scene_dir`` (its ``scene.json`` names the scene)
-    and the folder of the edited scene's ground truth (``None`` when not generated).
-
-    Raises:
-        EditError: ``scene_dir`` is not a benchmark scene, or the scene has no edit ``name`` (the
-            message lists the edits it has).
-    """
-    meta = _scene_meta(scene_dir)
-    if meta.get("scene") not in SCENES:
-        raise EditError(f"edit {name!r}: expected the model's scene folder to be a benchmark scene (scene.json "
-                        f"naming one of {sorted(SCENES)}), found {scene_dir} ({meta.get('scene', 'no scene.json')})")
-    scene = get_scene(meta["scene"])
-    if name not in scene.edits:
-        raise EditError(f"edit {name!r}: expected one of the edits of scene {scene.name!r}: {sorted(scene.edits)}")
-    truth = Path(scene_dir) / "edits" / name
-    return scene.edits[name], truth if (truth / "transforms_test.json").is_file() else None
-
-
-def resolve_edit(model: TrainedModel, edit: EditSource | str) -> tuple[EditSource, str, Path | None]:
-    """``(edit, label, ground-truth folder)`` for an edit given as a benchmark name, a file or an
-    :class:`Edit`: a string that is not an existing file is looked up among the benchmark's edits."""
-    if isinstance(edit, str) and not Path(edit).exists() and not edit.lower().endswith((".npy", ".ply")):
-        fn, truth = benchmark_edit(model.scene_dir, edit)
-        return fn, edit, truth
-    label = edit.name if isinstance(edit, Edit) else str(edit)
-    return edit, label, None
-
-
-def edit_model(model: TrainedModel, edit: EditSource | str, out_dir: str | Path | None = None, *,
-               ist: bool = True, cfg: EditConfig = EditConfig(), scene_dir: str | Path | None = None
-               ) -> tuple[TrainedModel, dict]:
+def edit_model(model: TrainedModel, edit: EditSource, out_dir: str | Path | None = None, *,
+               ist: bool = True, cfg: EditConfig = EditConfig(), scene_dir: str | Path | None = None,
+               label: str | None = None) -> tuple[TrainedModel, dict]:
     """Apply ``edit`` to ``model``'s cloud. Returns ``(edited model, report)``.
 
     ``ist=False`` declares no IST effect (the "without IST" variant; the IST is still computed and
     stored, so the same edited directory can be rendered either way). ``scene_dir``: the edited
-    scene's ground truth (found automatically for benchmark edits by name), recorded for ``eval`` and
-    ``finetune``. With ``out_dir`` the edited model is written there as a run directory (atomically).
+    scene's ground truth, recorded for ``eval`` and ``finetune`` (for a benchmark edit by name,
+    :func:`ne_jax.benchmark.edits.resolve_edit` gives the edit and its folder). ``label`` names the
+    edit in the report (default: the edit's name or the file). With ``out_dir`` the edited model is
+    written there as a run directory (atomically).
     """
-    fn, label, truth = resolve_edit(model, edit)
-    truth = Path(scene_dir) if scene_dir is not None else truth
+    label = label if label is not None else edit.name if isinstance(edit, Edit) else str(edit)
     report: dict = {}
-    points = apply_edit(model.state.point_state(model.scene.points), fn, cfg, report=report)
+    points = apply_edit(model.state.point_state(model.scene.points), edit, cfg, report=report)
     run = model.run.replace(render=edited_render_config(model.run.render, ist))
     state = model.state.with_points(points, np.zeros(points.capacity, bool))
-    edited = TrainedModel(run=run, state=state, scene=cfg.scene(model.scene, points, run.render), scene_dir=truth,
-                          meta=dict(model.meta))
+    edited = TrainedModel(run=run, state=state, scene=cfg.scene(model.scene, points, run.render),
+                          scene_dir=None if scene_dir is None else Path(scene_dir), meta=dict(model.meta))
     report = {"edit": label, "ist": ist, **report}
     if out_dir is not None:
         source = {"scene_dir": str(model.scene_dir) if model.scene_dir else None, "step": int(model.state.step)}
@@ -119,4 +82,4 @@ def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene
     return train(run, scene_dir, run_dir, resume=resume, progress=progress, log=log, start=start)
 
 
-__all__ = ["benchmark_edit", "edit_model", "finetune", "finetune_config", "resolve_edit"]
+__all__ = ["edit_model", "finetune", "finetune_config"]

@@ -25,10 +25,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ne_jax.atomic import atomic_write_bytes
+from ne_jax.data.cameras import CAMERA_RADIUS, orbit_cameras
 from ne_jax.data.nerf_synthetic import SceneSplit, composite, parse_background
 from ne_jax.data.png import write_image
 from ne_jax.data.rays import Camera
-from ne_jax.data.synthetic import CAMERA_RADIUS, orbit_cameras
 from ne_jax.eval.metrics import LPIPS_DEFAULT_NET, LPIPS_MIN_SIZE, LPIPS_NETS, lpips, lpips_available, psnr, ssim
 from ne_jax.render.quadrature import at_test_time
 from ne_jax.render.renderer import PointScene, RenderConfig, render_image
@@ -158,7 +158,7 @@ def orbit_cameras_for(split_or_camera: SceneSplit | Camera, num_frames: int = 12
                       radius: float | None = None) -> list[Camera]:
     """``num_frames`` cameras evenly spaced on a circle around the world ``z`` axis at
     ``elevation_deg``, at distance ``radius`` from the origin and looking at it (the benchmark's
-    :func:`~ne_jax.data.synthetic.orbit_cameras`, rescaled), with the intrinsics and image size of
+    :func:`~ne_jax.data.cameras.orbit_cameras`, rescaled), with the intrinsics and image size of
     ``split_or_camera`` (a split: its shared intrinsics; a camera: its own).
 
     ``radius`` defaults to the mean distance of the split's cameras from the origin (the camera's own

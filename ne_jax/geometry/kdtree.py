@@ -122,7 +122,7 @@ class KDTreeConfig:
     frontier_capacity: int = 64
     """Nodes kept per ray and level during traversal; more are dropped and counted as overflow."""
 
-    # "added_later" (ne_jax.train.checkpoint.ADDED_LATER): left out of run keys at the default
+    # "added_later" (ne_jax.config_json.ADDED_LATER): left out of run keys at the default
     first_pass_frontier: int | None = dataclasses.field(default=None, metadata={"added_later": True})
     """Two-pass traversal (None: one pass): every ray is walked first with this narrower frontier,
     and the rays that overflow it are walked again at ``frontier_capacity``, at most

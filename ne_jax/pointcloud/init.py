@@ -575,6 +575,6 @@ def ground_truth_cloud(scene_dir: str | os.PathLike) -> InitialCloud:
     if not path.is_file():
         raise PlyError(
             f"ground-truth surface samples not found: {path} (only scenes made by "
-            "ne_jax.data.benchmark have them)"
+            "ne_jax.benchmark.generate have them)"
         )
     return _cloud_from_ply(path, GT_SOURCE)

@@ -36,6 +36,7 @@ from tqdm.auto import tqdm
 
 from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ne_jax.compiles import count_compiles
+from ne_jax.config_json import ConfigError, config_diff, config_from_json, config_to_json
 from ne_jax.data.nerf_synthetic import SceneSplit, load_split
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTreeConfig
@@ -52,15 +53,7 @@ from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.pointcloud.optimise import PointOptConfig, optimise_points
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import PointScene, RenderConfig
-from ne_jax.train.checkpoint import (
-    CheckpointError,
-    config_diff,
-    config_from_json,
-    config_to_json,
-    latest_checkpoint,
-    load_checkpoint,
-    save_checkpoint,
-)
+from ne_jax.train.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, save_checkpoint
 from ne_jax.train.sampler import SamplerConfig, build_pool, sample_batch
 from ne_jax.train.state import TrainConfig, TrainState, init_train_state
 from ne_jax.train.step import make_train_step
@@ -251,7 +244,7 @@ def load_run_config(path: str | Path) -> RunConfig:
         raise FileNotFoundError(f"{file}: expected a run config (config.json of a training run), found nothing")
     try:
         cfg = config_from_json(json.loads(file.read_text(encoding="utf-8")))
-    except (json.JSONDecodeError, UnicodeDecodeError, TypeError) as e:
+    except (json.JSONDecodeError, UnicodeDecodeError, TypeError, ConfigError) as e:
         raise ValueError(f"{file}: expected a RunConfig in JSON, found unreadable data ({e})") from None
     if not isinstance(cfg, RunConfig):
         raise ValueError(f"{file}: expected a RunConfig, found {type(cfg).__name__}")

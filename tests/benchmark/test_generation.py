@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ne_jax.benchmark import scenes as S
+from ne_jax.benchmark.generate import generate_benchmark, generate_scene, list_variants
 from ne_jax.cli import main
-from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import generate_benchmark, generate_scene, list_variants
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.ply import read_ply
 from ne_jax.viz import contact_sheet
@@ -85,7 +85,7 @@ def test_failed_scene_leaves_nothing(tmp_path, monkeypatch):
     def boom(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr("ne_jax.data.benchmark.write_split", boom)
+    monkeypatch.setattr("ne_jax.benchmark.generate.write_split", boom)
     with pytest.raises(RuntimeError, match="disk full"):
         generate_scene("cup", GEN_SCENES, tmp_path)
     assert list(tmp_path.iterdir()) == []

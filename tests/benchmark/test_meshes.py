@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ne_jax.data import meshes as M
+from ne_jax.benchmark import meshes as M
 
 
 def signed_volume(mesh: M.TriMesh) -> float:

@@ -5,21 +5,23 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from ne_jax.data import meshes as M
-from ne_jax.data import synthetic as S
+from ne_jax.benchmark import meshes as M
+from ne_jax.benchmark import raycaster
+from ne_jax.benchmark import scenes as S
+from ne_jax.data import cameras
 
 
 def one_sphere(material: S.Material, radius=0.8):
     mesh = M.sphere(radius, 128, 0.02).with_material(0)
-    return S.RayCaster(S.apply_to_mesh(mesh, None), (material,))
+    return raycaster.RayCaster(S.apply_to_mesh(mesh, None), (material,))
 
 
 def test_silhouette_matches_analytic_sphere():
     caster = one_sphere(S.Material(S.solid((0.5, 0.5, 0.5))))
-    c2w = S.look_at((0.0, 0.0, 4.0), up=(0.0, 1.0, 0.0))
+    c2w = cameras.look_at((0.0, 0.0, 4.0), up=(0.0, 1.0, 0.0))
     res = 48
-    img = caster.render(c2w, res, res, S.CAMERA_ANGLE_X, ss=1)
-    focal = 0.5 * res / np.tan(0.5 * S.CAMERA_ANGLE_X)
+    img = caster.render(c2w, res, res, cameras.CAMERA_ANGLE_X, ss=1)
+    focal = 0.5 * res / np.tan(0.5 * cameras.CAMERA_ANGLE_X)
     j, i = np.meshgrid(np.arange(res) + 0.5, np.arange(res) + 0.5, indexing="ij")
     d = np.stack([(i - res / 2) / focal, -(j - res / 2) / focal, -np.ones_like(i)], -1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
@@ -32,10 +34,10 @@ def test_silhouette_matches_analytic_sphere():
 
 def test_render_is_bit_for_bit_repeatable():
     scene = S.get_scene("glossy", 0.5)
-    caster = S.RayCaster(S.apply_to_mesh(scene.mesh, scene.edits["bend"]), scene.materials)
-    c2w = S.orbit_cameras(4)[1]
-    a = caster.render(c2w, 24, 24, S.CAMERA_ANGLE_X, ss=2)
-    b = caster.render(c2w, 24, 24, S.CAMERA_ANGLE_X, ss=2)
+    caster = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, scene.edits["bend"]), scene.materials)
+    c2w = cameras.orbit_cameras(4)[1]
+    a = caster.render(c2w, 24, 24, cameras.CAMERA_ANGLE_X, ss=2)
+    b = caster.render(c2w, 24, 24, cameras.CAMERA_ANGLE_X, ss=2)
     np.testing.assert_array_equal(a, b)
     assert 0.0 < a[..., 3].mean() < 1.0 and np.all((a >= 0) & (a <= 1))
 
@@ -63,12 +65,12 @@ def test_view_dependence_only_for_glossy_materials(glossy):
 
 def test_light_shadows_darken_occluded_points():
     """A small box floating between the key light and the floor box casts a shadow."""
-    key = np.asarray(S.LIGHTS[0].direction, float)
+    key = np.asarray(raycaster.LIGHTS[0].direction, float)
     key /= np.linalg.norm(key)
     floor = M.box((-2, -2, -0.1), (2, 2, 0.0), 0.5)
     blocker = M.box((-0.2, -0.2, -0.2), (0.2, 0.2, 0.2), 0.5).translated(1.0 * key)
     mesh = M.concatenate([floor, blocker]).with_material(0)
-    caster = S.RayCaster(S.apply_to_mesh(mesh, None), (S.Material(S.solid((0.8, 0.8, 0.8))),))
+    caster = raycaster.RayCaster(S.apply_to_mesh(mesh, None), (S.Material(S.solid((0.8, 0.8, 0.8))),))
     down = np.array([[0.0, 0.0, -1.0]])
     shadowed, _ = caster.shade(np.array([[0.0, 0.0, 0.5]]), down)
     lit, _ = caster.shade(np.array([[1.5, -1.5, 0.5]]), down)

@@ -7,8 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
-from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import generate_scene, seen_surface_samples
+from ne_jax.benchmark import scenes as S
+from ne_jax.benchmark.generate import generate_scene, seen_surface_samples
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.ply import read_ply
 

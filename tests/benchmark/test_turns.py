@@ -8,8 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from ne_jax.data import synthetic as S
-from ne_jax.data.benchmark import generate_scene
+from ne_jax.benchmark import raycaster
+from ne_jax.benchmark import scenes as S
+from ne_jax.benchmark.generate import generate_scene
+from ne_jax.data import cameras
 from ne_jax.data.nerf_synthetic import load_split, write_split
 from ne_jax.data.ply import read_ply
 from ne_jax.edit import deformations as D
@@ -49,15 +51,15 @@ def test_co_moving_truth_is_the_original_from_inversely_moved_cameras(glossy_roo
     scene = S.get_scene("glossy", GEN_SCENES.detail)
     edit = scene.edits["turn_with_light"]
     target = glossy_root / "glossy" / "edits" / "turn_with_light"
-    cams = S.orbit_cameras(GEN_SCENES.test_views)
+    cams = cameras.orbit_cameras(GEN_SCENES.test_views)
     written = json.loads((target / "transforms_test.json").read_text())
     np.testing.assert_array_equal([f["transform_matrix"] for f in written["frames"]], cams)
-    caster = S.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials)
+    caster = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials)
     moved = np.linalg.inv(edit.matrix) @ cams
     res = GEN_SCENES.resolution
-    images = np.stack([caster.render(c, res, res, S.CAMERA_ANGLE_X, GEN_SCENES.supersample)
+    images = np.stack([caster.render(c, res, res, cameras.CAMERA_ANGLE_X, GEN_SCENES.supersample)
                        for c in moved]).astype(np.float32)
-    write_split(tmp_path, "test", images, cams, S.CAMERA_ANGLE_X)
+    write_split(tmp_path, "test", images, cams, cameras.CAMERA_ANGLE_X)
     assert {k: v for k, v in _digests(tmp_path).items() if k.endswith(".png")} == \
         {k: v for k, v in _digests(target).items() if k.startswith("test/")}
 
@@ -69,17 +71,18 @@ def test_turning_mesh_lights_and_sky_together_is_moving_the_camera():
     scene = S.get_scene("glossy", 0.5)
     edit = scene.edits["turn_scene"]
     motion = edit.matrix
-    c2w = S.orbit_cameras(8)[1]
-    original = S.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials).render(c2w, 32, 32, S.CAMERA_ANGLE_X, 2)
-    turned = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials, environment=motion[:3, :3])
-    image = turned.render(motion @ c2w, 32, 32, S.CAMERA_ANGLE_X, 2)
+    c2w = cameras.orbit_cameras(8)[1]
+    original = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials).render(
+        c2w, 32, 32, cameras.CAMERA_ANGLE_X, 2)
+    turned = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials, environment=motion[:3, :3])
+    image = turned.render(motion @ c2w, 32, 32, cameras.CAMERA_ANGLE_X, 2)
     diff = np.abs(image - original).max(-1)
     assert 0.2 < original[..., 3].mean() < 0.9
     assert np.mean(diff > 1e-4) <= 0.005 and diff.mean() < 1e-4
     # the same turn with the lights and sky fixed looks different on this glossy scene: highlights
     # and reflections slide over the surface
-    fixed = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials).render(motion @ c2w, 32, 32,
-                                                                                   S.CAMERA_ANGLE_X, 2)
+    fixed = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials).render(motion @ c2w, 32, 32,
+                                                                                   cameras.CAMERA_ANGLE_X, 2)
     np.testing.assert_array_equal(fixed[..., 3], image[..., 3])
     assert np.abs(fixed - image)[..., :3].max() > 0.2
 
@@ -88,10 +91,11 @@ def test_fixed_environment_turn_by_zero_degrees_is_the_original():
     scene = S.get_scene("glossy", 0.5)
     zero = D.rigid_scene("zero", S.TURN_AXIS, 0.0, S.TURN_PIVOT)
     np.testing.assert_array_equal(zero.matrix, np.eye(4))
-    c2w = S.orbit_cameras(8)[3]
-    a = S.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials).render(c2w, 24, 24, S.CAMERA_ANGLE_X, 2)
-    b = S.RayCaster(S.truth_mesh(scene.mesh, zero), scene.materials).render(S.truth_cameras(zero, c2w), 24, 24,
-                                                                            S.CAMERA_ANGLE_X, 2)
+    c2w = cameras.orbit_cameras(8)[3]
+    a = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials).render(
+        c2w, 24, 24, cameras.CAMERA_ANGLE_X, 2)
+    b = raycaster.RayCaster(S.truth_mesh(scene.mesh, zero), scene.materials).render(S.truth_cameras(zero, c2w), 24, 24,
+                                                                            cameras.CAMERA_ANGLE_X, 2)
     np.testing.assert_allclose(b, a, atol=1e-5)  # vertices rounded to float32 by the edit: normals move by ~1e-7
 
 

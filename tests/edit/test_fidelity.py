@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ne_jax.data.cameras import look_at
 from ne_jax.data.rays import Camera
-from ne_jax.data.synthetic import look_at
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import rigid_motion, rigid_scene
 from ne_jax.edit.fidelity import EXACT_DB, equivariance, exact_rigid_points, motion_parts, moved_camera, psnr_between

@@ -9,8 +9,9 @@ import json
 import numpy as np
 import pytest
 
+from ne_jax.benchmark.edits import benchmark_edit
+from ne_jax.benchmark.generate import BenchmarkPreset, generate_scene
 from ne_jax.cli import main
-from ne_jax.data.benchmark import BenchmarkPreset, generate_scene
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.targets import EditError
@@ -58,7 +59,8 @@ def bent(trained, tmp_path_factory):
     """The trained model edited by the scene's "bend", written to a run directory (shared: one edit)."""
     out = tmp_path_factory.mktemp("edited") / "bend"
     model = load_trained(trained)
-    edited, report = edit_model(model, "bend", out)
+    edit, truth = benchmark_edit(model.scene_dir, "bend")
+    edited, report = edit_model(model, edit, out, scene_dir=truth)
     return model, edited, report, out
 
 
@@ -89,7 +91,7 @@ def test_unknown_edit_name_lists_the_scenes_edits(trained, tmp_path, capsys):
 def test_edit_of_a_non_benchmark_scene_by_name_is_refused(trained, tmp_path):
     model = dataclasses.replace(load_trained(trained), scene_dir=tmp_path)
     with pytest.raises(EditError, match="expected the model's scene folder to be a benchmark scene"):
-        edit_model(model, "bend")
+        benchmark_edit(model.scene_dir, "bend")
 
 
 def _check_finetuned(before, after, history, run_dir, train_ist):

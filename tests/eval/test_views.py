@@ -16,12 +16,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data.benchmark import generate_scene
+from ne_jax.benchmark.generate import generate_scene
+from ne_jax.data.cameras import FAR, NEAR
 from ne_jax.data.nerf_synthetic import composite, load_split, write_split
 from ne_jax.data.ply import read_ply
 from ne_jax.data.png import read_image
 from ne_jax.data.rays import Camera
-from ne_jax.data.synthetic import FAR, NEAR
 from ne_jax.eval import (
     evaluate_split,
     lpips,

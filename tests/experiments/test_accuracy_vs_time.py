@@ -125,7 +125,7 @@ def test_fit_order_recovers_a_power_law():
 def mini(tmp_path_factory):
     """``(root, scene_dir, run)``: a 24-px generated glossy scene (as tests/edit/test_model.py) and a
     RunConfig of a few steps."""
-    from ne_jax.data.benchmark import generate_scene
+    from ne_jax.benchmark.generate import generate_scene
 
     from tests.mini_presets import mini_benchmark, short_run
 
@@ -221,8 +221,7 @@ def test_evenly_spaced_views():
 
 
 def test_image_frontier_settings_change_only_the_frontier():
-    _load()
-    image = sys.modules["accuracy_vs_time_image"]
+    image = _load("accuracy_vs_time_image")
     from ne_jax.render.renderer import RenderConfig
 
     own = RenderConfig.tiny()

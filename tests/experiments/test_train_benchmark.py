@@ -37,7 +37,7 @@ def test_a_short_run_writes_the_table(tmp_path):
     """Two steps on a small scene: the JSON and the table hold both Chamfer measures."""
     import json
 
-    from ne_jax.data.benchmark import generate_scene
+    from ne_jax.benchmark.generate import generate_scene
 
     generate_scene("glossy", TRAIN_SCENE, tmp_path / "bench", seed=0)
     _load().main(["--preset", "tiny", "--root", str(tmp_path / "bench"), "--scenes", "glossy", "--epochs", "1",

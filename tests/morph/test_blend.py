@@ -12,10 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ne_jax.benchmark.generate import generate_scene
 from ne_jax.cli import main
-from ne_jax.data.benchmark import generate_scene
+from ne_jax.data.cameras import orbit_cameras
 from ne_jax.data.rays import Camera
-from ne_jax.data.synthetic import orbit_cameras
 from ne_jax.geometry.points import PointState
 from ne_jax.morph import (
     BlendedShading,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ne_jax.data.synthetic import look_at
+from ne_jax.data.cameras import look_at
 from ne_jax.pointcloud.init import Views
 
 RADIUS = 0.6

@@ -94,7 +94,7 @@ def test_views_outside_the_frustum_give_no_information(sphere):
     # A camera so close that the sphere overflows its image: most of the sphere lies outside its
     # frustum, and must not be carved by it (a carver treating "outside" as "background" would
     # keep only the part of the sphere inside this one frustum).
-    from ne_jax.data.synthetic import look_at
+    from ne_jax.data.cameras import look_at
 
     c2w = look_at(np.array([0.0, -0.95, 0.25]))
     size = sphere.alpha.shape[1]
@@ -114,7 +114,7 @@ def test_views_outside_the_frustum_give_no_information(sphere):
 def test_partial_frustum_with_own_intrinsics():
     # Voxels behind a camera or outside its image are not carved by it: a single camera looking
     # at the +x half of the box from close by carves only inside its frustum.
-    from ne_jax.data.synthetic import look_at
+    from ne_jax.data.cameras import look_at
 
     c2w = look_at(np.array([2.0, 0.0, 0.0]))
     alpha = np.zeros((1, 32, 32), np.float32)
@@ -240,7 +240,7 @@ def test_ground_truth_cloud_is_labelled(tmp_path):
 @pytest.fixture(scope="module")
 def textured_sphere():
     """24 views of a sphere textured by position (64 x 64), as Views with colours."""
-    from ne_jax.data.synthetic import look_at
+    from ne_jax.data.cameras import look_at
 
     from .conftest import sphere_rgba
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ne_jax.data import synthetic as S
+from ne_jax.benchmark import scenes as S
 from ne_jax.geometry.points import PointState
 
 

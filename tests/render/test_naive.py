@@ -9,7 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data import synthetic as S
+from ne_jax.benchmark import raycaster
+from ne_jax.benchmark import scenes as S
+from ne_jax.data import cameras
 from ne_jax.data.rays import Camera
 from ne_jax.geometry.points import PointState
 from ne_jax.render import naive
@@ -29,7 +31,7 @@ def _cfg(**effects) -> RenderConfig:
 
 def _camera(c2w=None) -> Camera:
     """A non-square image with fx != fy and an off-centre principal point."""
-    c2w = S.look_at((0.3, -2.5, 0.8)) if c2w is None else c2w
+    c2w = cameras.look_at((0.3, -2.5, 0.8)) if c2w is None else c2w
     return Camera(c2w=jnp.asarray(c2w, jnp.float32), fx=jnp.float32(13.0), fy=jnp.float32(11.0),
                   cx=jnp.float32(7.6), cy=jnp.float32(6.3), width=W, height=H)
 
@@ -213,7 +215,7 @@ def test_empty_view_is_pure_background():
     cfg = _cfg()
     params = init_color_model(cfg.shading, jax.random.key(0))
     pts = _cloud()
-    away = S.look_at((0.0, -2.5, 0.0), target=(0.0, -5.0, 0.0))  # the cloud is behind this camera
+    away = cameras.look_at((0.0, -2.5, 0.0), target=(0.0, -5.0, 0.0))  # the cloud is behind this camera
     all_dead = PointScene(points=pts.replace(alive=jnp.zeros_like(pts.alive)), tree=None)  # no tree to build
     for scene, cam in [(_scene(pts), _camera(away)), (all_dead, _camera())]:
         out = naive_plot_image(cfg, params, scene, cam, BG, NEAR, FAR, 1.0)
@@ -295,7 +297,7 @@ def test_compiles_once():
     sizes = [naive._naive_plot._cache_size()]
     for seed, eye in [(7, (0.3, -2.5, 0.8)), (8, (-1.0, -2.2, 0.3)), (9, (2.0, 1.0, 1.0))]:
         pts = _cloud(n=80, seed=seed)  # capacity 85: no other test uses it
-        out = naive_plot_image(cfg, params, PointScene(points=pts, tree=None), _camera(S.look_at(eye)),
+        out = naive_plot_image(cfg, params, PointScene(points=pts, tree=None), _camera(cameras.look_at(eye)),
                                np.asarray(BG) * seed / 10, NEAR + seed / 100, FAR, splat_radius=1.0)
         out.rgb.block_until_ready()
         sizes.append(naive._naive_plot._cache_size())
@@ -311,13 +313,13 @@ def test_glossy_benchmark_camera_end_to_end():
     cfg = RenderConfig.tiny()
     pts = PointState.from_numpy(samples["xyz"], feature_dim=32, normal=samples["normal"], key=jax.random.key(0))
     params = init_color_model(cfg.shading, jax.random.key(1))
-    c2w = S.orbit_cameras(8)[3]
-    cam = Camera.from_fov(c2w, res, res, S.CAMERA_ANGLE_X)
-    out = naive_plot_image(cfg, params, PointScene.build(pts, cfg), cam, np.zeros(3), S.NEAR, S.FAR)
+    c2w = cameras.orbit_cameras(8)[3]
+    cam = Camera.from_fov(c2w, res, res, cameras.CAMERA_ANGLE_X)
+    out = naive_plot_image(cfg, params, PointScene.build(pts, cfg), cam, np.zeros(3), cameras.NEAR, cameras.FAR)
     for field in ("rgb", "opacity", "depth", "normal"):
         assert np.all(np.isfinite(np.asarray(getattr(out, field)))), field
-    mask = S.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials).render(
-        c2w, res, res, S.CAMERA_ANGLE_X, 1)[..., 3] > 0.5
+    mask = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, None), scene.materials).render(
+        c2w, res, res, cameras.CAMERA_ANGLE_X, 1)[..., 3] > 0.5
     opacity = np.asarray(out.opacity)
     assert 0.1 < mask.mean() < 0.9
     assert np.all(opacity[mask] > 0.5)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data import synthetic as S
+from ne_jax.data import cameras
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.knn import knn_interpolate
@@ -47,7 +47,7 @@ def setup():
     cfg = RenderConfig.tiny(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
     scene = PointScene.build(points, cfg)
     params = init_color_model(cfg.shading, jax.random.key(0))
-    camera = Camera.from_fov(S.orbit_cameras(8)[1], RES, RES, S.CAMERA_ANGLE_X)
+    camera = Camera.from_fov(cameras.orbit_cameras(8)[1], RES, RES, cameras.CAMERA_ANGLE_X)
     return cfg, params, scene, camera
 
 
@@ -95,7 +95,7 @@ def test_field_constant_along_rays_renders_as_the_segment_mode(setup, rule):
     n = jnp.asarray([0.6, 0.0, 0.8], jnp.float32)
     const = scene.replace(points=p.replace(feature=jnp.broadcast_to(f, p.feature.shape),
                                            normal=jnp.broadcast_to(n, p.normal.shape)))
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     key = jax.random.key(2) if rule == "stochastic" else None
     a = render_rays(cfg, params, const, rays, BG, key)
     b = render_rays(cfg.replace(integration=SAMPLES), params, const, rays, BG, key)
@@ -219,7 +219,7 @@ def _check_against_reference(cfg, params, scene, rays, bg, ref):
 def test_packing_drops_are_counted_then_grown(setup):
     cfg, params, scene, camera = setup
     cfg = cfg.replace(integration=SAMPLES)
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     full = _render(cfg.replace(segments_per_ray=None), params, scene, rays, BG)
     packed = _render(cfg, params, scene, rays, BG)
     np.testing.assert_allclose(np.asarray(packed.rgb), np.asarray(full.rgb), atol=1e-6)
@@ -234,7 +234,7 @@ def test_packing_drops_are_counted_then_grown(setup):
 def test_undeclared_ist_is_not_computed(setup):
     cfg, params, scene, camera = setup
     cfg = cfg.replace(integration=SAMPLES)
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     poisoned = scene.replace(points=scene.points.replace(ist=jnp.full_like(scene.points.ist, jnp.nan)))
     assert np.isfinite(np.asarray(_render(cfg, params, poisoned, rays, BG).rgb)).all()
     assert not np.isfinite(np.asarray(_render(cfg.with_effects(ist=True), params, poisoned, rays, BG).rgb)).all()
@@ -247,7 +247,7 @@ def test_gradients_are_finite_and_reach_params_and_points(setup, rule):
     if rule == "stochastic":
         cfg = _stochastic(cfg)
     key = jax.random.key(9) if rule == "stochastic" else None
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     target = jnp.full((rays.num_rays, 3), 0.3)
 
     def loss(params, xyz, feature, conf_logit):
@@ -268,19 +268,19 @@ def test_gradients_are_finite_and_reach_params_and_points(setup, rule):
 def test_repeated_renders_do_not_recompile(setup):
     cfg, params, scene, camera = setup
     cfg = cfg.replace(integration=SAMPLES)
-    other = Camera.from_fov(S.orbit_cameras(8)[5], RES, RES, S.CAMERA_ANGLE_X)
+    other = Camera.from_fov(cameras.orbit_cameras(8)[5], RES, RES, cameras.CAMERA_ANGLE_X)
     moved = scene.replace(points=scene.points.replace(feature=scene.points.feature * 0.5))
     calls = [(scene, camera, BG), (moved, other, jnp.zeros(3))]
-    first = render_image(cfg, params, scene, camera, BG, S.NEAR, S.FAR)
+    first = render_image(cfg, params, scene, camera, BG, cameras.NEAR, cameras.FAR)
     assert first.rgb.shape == (RES, RES, 3) and np.isfinite(np.asarray(first.rgb)).all()
     size = _render_chunk._cache_size()
     for args in calls * 2:
-        render_image(cfg, params, args[0], args[1], args[2], S.NEAR, S.FAR)
+        render_image(cfg, params, args[0], args[1], args[2], cameras.NEAR, cameras.FAR)
     assert _render_chunk._cache_size() == size
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     _render_aux(cfg, params, scene, rays, BG)
     size = _render_aux._cache_size()
-    _render_aux(cfg, params, moved, camera_rays(other, S.NEAR, S.FAR), jnp.zeros(3))
+    _render_aux(cfg, params, moved, camera_rays(other, cameras.NEAR, cameras.FAR), jnp.zeros(3))
     assert _render_aux._cache_size() == size
 
 
@@ -295,7 +295,7 @@ def test_training_step_runs_with_point_sampling(setup):
     tcfg = TrainConfig(total_steps=100)
     state = init_train_state(tcfg, cfg, scene.points, jax.random.key(1))
     step_fn = make_train_step(tcfg, cfg)
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     target = jnp.concatenate([jnp.full((rays.num_rays, 3), 0.4), jnp.ones((rays.num_rays, 1))], -1)
     batch = Batch(rays=rays.replace(target=target), pixel=jnp.arange(rays.num_rays, dtype=jnp.int32),
                   in_band=jnp.zeros(rays.num_rays, bool), background=BG)

@@ -6,7 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data import synthetic as S
+from ne_jax.benchmark import raycaster
+from ne_jax.benchmark import scenes as S
+from ne_jax.data import cameras
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.render.renderer import (
     PointScene,
@@ -30,17 +32,17 @@ def setup():
     cfg = RenderConfig.tiny()
     scene = PointScene.build(points, cfg)
     params = init_color_model(cfg.shading, jax.random.key(0))
-    c2w = S.orbit_cameras(8)[1]
-    camera = Camera.from_fov(c2w, RES, RES, S.CAMERA_ANGLE_X)
+    c2w = cameras.orbit_cameras(8)[1]
+    camera = Camera.from_fov(c2w, RES, RES, cameras.CAMERA_ANGLE_X)
     scene_gt = S.get_scene("glossy", 0.5)
-    alpha = S.RayCaster(S.apply_to_mesh(scene_gt.mesh, None), scene_gt.materials).render(
-        c2w, RES, RES, S.CAMERA_ANGLE_X, ss=1)[..., 3]
+    alpha = raycaster.RayCaster(S.apply_to_mesh(scene_gt.mesh, None), scene_gt.materials).render(
+        c2w, RES, RES, cameras.CAMERA_ANGLE_X, ss=1)[..., 3]
     return cfg, params, scene, camera, alpha
 
 
 def test_random_model_renders_a_benchmark_camera(setup):
     cfg, params, scene, camera, alpha = setup
-    out = render_image(cfg, params, scene, camera, BG, S.NEAR, S.FAR)
+    out = render_image(cfg, params, scene, camera, BG, cameras.NEAR, cameras.FAR)
     assert out.rgb.shape == (RES, RES, 3) and out.opacity.shape == (RES, RES)
     for leaf in jax.tree_util.tree_leaves(out):
         assert np.all(np.isfinite(np.asarray(leaf, np.float64)))
@@ -55,7 +57,7 @@ def test_random_model_renders_a_benchmark_camera(setup):
 
 def test_packing_changes_nothing_and_drops_are_counted_then_grown(setup):
     cfg, params, scene, camera, _ = setup
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     full = render_rays(cfg.replace(segments_per_ray=None), params, scene, rays, BG)
     packed = render_rays(cfg.replace(segments_per_ray=8.0), params, scene, rays, BG)
     np.testing.assert_allclose(np.asarray(packed.rgb), np.asarray(full.rgb), atol=1e-6)
@@ -70,7 +72,7 @@ def test_packing_changes_nothing_and_drops_are_counted_then_grown(setup):
 
 def test_traversal_overflow_is_reported_then_grown(setup):
     cfg, params, scene, camera, _ = setup
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     small = cfg.replace(tree=cfg.tree.replace(max_segments=2), chunk=RES * RES)
     out = render_rays(small, params, scene, rays, BG)
     assert int(out.overflow.max()) > 0
@@ -84,7 +86,7 @@ def test_undeclared_effects_are_not_computed(setup):
     """Poison the arrays an undeclared effect would read: NaN would reach the image even if the
     branch were only multiplied by zero."""
     cfg, params, scene, camera, _ = setup
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     poisoned = scene.replace(points=scene.points.replace(ist=jnp.full_like(scene.points.ist, jnp.nan)))
     out = render_rays(cfg, params, poisoned, rays, BG)  # tiny preset: IST not declared
     assert np.isfinite(np.asarray(out.rgb)).all()
@@ -98,7 +100,7 @@ def test_undeclared_effects_are_not_computed(setup):
 
 def test_identity_ist_renders_like_no_ist(setup):
     cfg, params, scene, camera, _ = setup
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     a = render_rays(cfg, params, scene, rays, BG)
     b = render_rays(cfg.with_effects(ist=True), params, scene, rays, BG)
     # KNN-weighted means of identities are identity up to rounding of the weights' sum.
@@ -107,7 +109,7 @@ def test_identity_ist_renders_like_no_ist(setup):
 
 def test_gradients_are_finite_and_reach_everything(setup):
     cfg, params, scene, camera, alpha = setup
-    rays = camera_rays(camera, S.NEAR, S.FAR)
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     hit = np.flatnonzero(alpha.reshape(-1) == 1)[:64]
     miss = np.flatnonzero(alpha.reshape(-1) == 0)[:8]
     rays = rays.take(jnp.asarray(np.concatenate([hit, miss])))
@@ -132,21 +134,21 @@ def test_repeated_renders_do_not_recompile(setup):
     """Same capacities, new poses, features and background: the compiled chunk is reused (a chunk
     that overflowed may add one compile for its grown budget, once)."""
     cfg, params, scene, camera, _ = setup
-    other = Camera.from_fov(S.orbit_cameras(8)[5], RES, RES, S.CAMERA_ANGLE_X)
+    other = Camera.from_fov(cameras.orbit_cameras(8)[5], RES, RES, cameras.CAMERA_ANGLE_X)
     moved = scene.replace(points=scene.points.replace(feature=scene.points.feature * 0.5))
     calls = [(scene, camera, BG), (moved, other, jnp.zeros(3))]
     for args in calls:
-        render_image(cfg, params, args[0], args[1], args[2], S.NEAR, S.FAR)
+        render_image(cfg, params, args[0], args[1], args[2], cameras.NEAR, cameras.FAR)
     size = _render_chunk._cache_size()
     for args in calls:
-        render_image(cfg, params, args[0], args[1], args[2], S.NEAR, S.FAR)
+        render_image(cfg, params, args[0], args[1], args[2], cameras.NEAR, cameras.FAR)
     assert _render_chunk._cache_size() == size
 
 
 def test_stochastic_rule_needs_a_key_and_no_chunked_render(setup):
     cfg, params, scene, camera, _ = setup
     sto = cfg.replace(quadrature=cfg.quadrature.__class__(rule="stochastic", samples_per_level=(4, 6, 8)))
-    rays = camera_rays(camera, S.NEAR, S.FAR).take(slice(0, 16))
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR).take(slice(0, 16))
     with pytest.raises(ValueError, match="PRNG key"):
         render_rays(sto, params, scene, rays, BG)
     out = render_rays(sto, params, scene, rays, BG, key=jax.random.key(3))

@@ -137,42 +137,6 @@ def test_round_trip_every_array_latest_and_keep(tmp_path):
     assert int(load_checkpoint(tmp_path, SMALL_TCFG, SMALL_RCFG)[0].skipped) == 9
 
 
-def test_configs_round_trip_with_types():
-    from ne_jax.render.renderer import RenderConfig
-
-    for cfg in (SMALL_TCFG, SMALL_RCFG, RenderConfig.paper(segments_per_ray=None),
-                RCFG.with_effects(background="sphere")):
-        data = json.loads(json.dumps(ckpt.config_to_json(cfg)))
-        back = ckpt.config_from_json(data)
-        assert back == cfg and type(back) is type(cfg)
-    with pytest.raises(CheckpointError, match="expected an ne_jax dataclass"):
-        ckpt.config_from_json({"__type__": "os:system", "command": "true"})
-
-
-def test_fields_added_later_keep_old_keys():
-    """A field flagged ADDED_LATER is left out of the key at its default (keys of runs made before it
-    existed stay valid) and counts once set; config.json always holds it."""
-    import dataclasses
-    import hashlib
-
-    from ne_jax.geometry.kdtree import KDTreeConfig
-    from ne_jax.train.loop import RunConfig
-
-    added = [f.name for f in dataclasses.fields(KDTreeConfig) if f.metadata.get(ckpt.ADDED_LATER)]
-    assert added == ["first_pass_frontier", "retry_share"]
-    run = RunConfig.tiny()  # walks in one pass: both fields at their defaults
-    assert run.render.tree.first_pass_frontier is None
-    stripped = ckpt.config_to_json(run)
-    for name in added:
-        del stripped["render"]["tree"][name]
-    old_key = hashlib.sha256(json.dumps(stripped, sort_keys=True).encode()).hexdigest()[:12]
-    assert ckpt.config_key(run) == old_key
-    assert "first_pass_frontier" in ckpt.config_to_json(run)["render"]["tree"]
-    two_pass = run.replace(render=run.render.replace(tree=run.render.tree.replace(first_pass_frontier=8)))
-    assert ckpt.config_key(two_pass) != old_key
-    assert ckpt.config_from_json(json.loads(json.dumps(stripped))) == run  # an old config.json reads back the same
-
-
 # ---------------------------------------------------------------- refusals
 
 
@@ -331,17 +295,3 @@ def test_sigkill_mid_write_resumes_from_the_last_complete_checkpoint(tmp_path):
     # the resumed run's next save clears the leftover
     save_checkpoint(run_dir, *small_run(4), SMALL_TCFG, SMALL_RCFG, keep=2)
     assert sorted(p.name for p in run_dir.iterdir()) == ["ckpt_00000003", "ckpt_00000004", "latest"]
-
-
-def test_a_field_added_later_at_its_default_is_no_difference():
-    """A config written before a field existed (e.g. ``TrainConfig.train_ist``) equals today's when
-    today's value is the default; a non-default value, or a changed field, is still a difference."""
-    expected = ckpt.config_to_json(TCFG)
-    old = json.loads(json.dumps(expected))
-    del old["train_ist"]
-    del old["loss"]["ist_orthogonality"]
-    assert ckpt.config_diff(old, expected) == []
-    changed = ckpt.config_to_json(TCFG.replace(train_ist=True))
-    assert ckpt.config_diff(old, changed) == ["train_ist (missing in checkpoint; run has True)"]
-    old["lr"] = 123.0
-    assert len(ckpt.config_diff(old, expected)) == 1

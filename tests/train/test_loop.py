@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data.benchmark import generate_scene
+from ne_jax.benchmark.generate import generate_scene
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.pointcloud.optimise import (
     PointOptConfig,

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.data.benchmark import generate_scene
+from ne_jax.benchmark.generate import generate_scene
 from ne_jax.data.nerf_synthetic import SceneSplit, composite, load_split
 from ne_jax.data.ply import read_ply
 from ne_jax.data.rays import pixel_rays

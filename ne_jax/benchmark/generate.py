@@ -26,7 +26,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ne_jax.atomic import atomic_directory, atomic_write_json
-from ne_jax.data import synthetic as S
+from ne_jax.benchmark import raycaster
+from ne_jax.benchmark import scenes as S
+from ne_jax.data import cameras
 from ne_jax.data.nerf_synthetic import load_split, write_split
 from ne_jax.data.ply import read_ply, write_ply
 
@@ -68,11 +70,11 @@ def _rng(seed: int, scene_name: str, stream: str) -> np.random.Generator:
     return np.random.default_rng(key)
 
 
-def _render_split(caster: S.RayCaster, c2ws: np.ndarray, preset: BenchmarkPreset, desc: str) -> np.ndarray:
+def _render_split(caster: raycaster.RayCaster, c2ws: np.ndarray, preset: BenchmarkPreset, desc: str) -> np.ndarray:
     res = preset.resolution
     images = np.empty((len(c2ws), res, res, 4), np.float32)
     for i in tqdm(range(len(c2ws)), desc=desc, leave=False, unit="img"):
-        images[i] = caster.render(c2ws[i], res, res, S.CAMERA_ANGLE_X, preset.supersample)
+        images[i] = caster.render(c2ws[i], res, res, cameras.CAMERA_ANGLE_X, preset.supersample)
     return images
 
 
@@ -91,9 +93,9 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
     t0 = time.perf_counter()
     scene = S.get_scene(scene_name, preset.detail)
     cams = {
-        "train": S.random_cameras(preset.train_views, _rng(seed, scene_name, "train")),
-        "val": S.random_cameras(preset.val_views, _rng(seed, scene_name, "val")),
-        "test": S.orbit_cameras(preset.test_views),
+        "train": cameras.random_cameras(preset.train_views, _rng(seed, scene_name, "train")),
+        "val": cameras.random_cameras(preset.val_views, _rng(seed, scene_name, "val")),
+        "test": cameras.orbit_cameras(preset.test_views),
     }
     samples = S.surface_samples(scene, preset.surface_samples, seed)
     timings = {"build": time.perf_counter() - t0}
@@ -103,12 +105,12 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
             t1 = time.perf_counter()
             target = out if edit is None else out / "edits" / edit_name
             target.mkdir(parents=True, exist_ok=True)
-            caster = S.RayCaster(S.truth_mesh(scene.mesh, edit), scene.materials)
+            caster = raycaster.RayCaster(S.truth_mesh(scene.mesh, edit), scene.materials)
             splits = ("train", "val", "test") if edit is None else ("train", "test")
             for split in splits:
                 images = _render_split(caster, S.truth_cameras(edit, cams[split]), preset,
                                        f"{scene_name}/{edit_name or 'original'}/{split}")
-                write_split(target, split, images, cams[split], S.CAMERA_ANGLE_X)
+                write_split(target, split, images, cams[split], cameras.CAMERA_ANGLE_X)
             _write_points(target / "points.ply", samples if edit is None else S.edit_samples(samples, edit))
             meta = {
                 "scene": scene_name,
@@ -117,8 +119,8 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
                 "edit_description": None if edit is None else edit.description,
                 "preset": asdict(preset),
                 "seed": seed,
-                "near": S.NEAR,
-                "far": S.FAR,
+                "near": cameras.NEAR,
+                "far": cameras.FAR,
                 "renderer": ("open3d RaycastingScene, two-sided Blinn-Phong, 2 shadowed directional lights, "
                              "sky reflection"),
             }
@@ -174,11 +176,11 @@ def seen_surface_samples(scene_dir, split: str = "train", tolerance: float = 1e-
     meta_path = scene_dir / "scene.json"
     if not meta_path.is_file():
         raise FileNotFoundError(f"{meta_path}: expected the scene.json of a benchmark scene (made by "
-                                "ne_jax.data.benchmark); not found")
+                                "ne_jax.benchmark.generate); not found")
     meta = json.loads(meta_path.read_text())
     scene = S.get_scene(meta["scene"], meta["preset"]["detail"])
     edit = None if meta.get("edit") is None else scene.edits[meta["edit"]]
-    caster = S.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials)
+    caster = raycaster.RayCaster(S.apply_to_mesh(scene.mesh, edit), scene.materials)
     xyz = np.stack([np.asarray(read_ply(scene_dir / "points.ply")[a], np.float64) for a in "xyz"], axis=1)
     cams = load_split(scene_dir, split)
     half_x, half_y = cams.cx / cams.fx, cams.cy / cams.fy  # tangents of the half fields of view
