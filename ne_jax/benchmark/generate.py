@@ -11,8 +11,12 @@ Layout of ``<root>`` for one preset::
                                        a whole-scene turn's scene.json adds ``rigid`` (its 4x4 motion)
                                        and ``moves_environment``
 
-Everything is deterministic for a seed (same seed, same bytes), and each scene directory appears
-only when complete (written to a temporary sibling, then renamed).
+Everything is deterministic for a seed (same seed, same bytes; a path-traced preset's scene.json adds
+its generation time, the one field that differs), and each scene directory appears only when
+complete (written to a temporary sibling, then renamed).
+
+The ground truth is rendered by the preset's ``renderer`` (:data:`RENDERERS`): the ray caster
+(``tiny``, ``default``) or Mitsuba 3's path tracer (``tiny_pt``, ``default_pt``; needs ``mitsuba``).
 """
 
 from __future__ import annotations
@@ -32,6 +36,12 @@ from ne_jax.data import cameras
 from ne_jax.data.nerf_synthetic import load_split, write_split
 from ne_jax.data.ply import read_ply, write_ply
 
+RENDERERS = {
+    "raycast": "the Open3D ray caster (ne_jax.benchmark.raycaster): Blinn-Phong, noise-free",
+    "pathtrace": "Mitsuba 3's path tracer (ne_jax.benchmark.pathtracer): environment map, PBR materials, noisy",
+}
+"""The ground-truth renderers a preset can name, with what they are."""
+
 
 @dataclass(frozen=True)
 class BenchmarkPreset:
@@ -45,16 +55,40 @@ class BenchmarkPreset:
     test_views: int
     """Test views lie on an orbit at 25 degrees elevation; train/val views are random."""
     supersample: int
-    """``ss``: each pixel averages an ``ss x ss`` grid of ray samples (anti-aliasing, alpha)."""
+    """``ss``: each pixel averages an ``ss x ss`` grid of ray samples (anti-aliasing, alpha); the ray
+    caster's only (the path tracer spreads its ``spp`` samples over each pixel)."""
     detail: float
     """Mesh resolution factor (1.0: ~0.05 edge length, 96 segments around)."""
     surface_samples: int
     """Points in each ``points.ply``."""
+    renderer: str = "raycast"
+    """The ground-truth renderer, a key of :data:`RENDERERS`."""
+    spp: int = 0
+    """Samples per pixel of the path tracer (``renderer="pathtrace"``; unused by the ray caster)."""
+
+    def __post_init__(self):
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"BenchmarkPreset.renderer: unknown renderer {self.renderer!r}; expected one of "
+                             f"{sorted(RENDERERS)}")
+        if self.renderer == "pathtrace" and self.spp < 1:
+            raise ValueError(f"BenchmarkPreset.spp: the path tracer needs a positive sample count, found {self.spp}")
+
+    def record(self) -> dict:
+        """The preset as scene.json and timings.json record it (a ray-cast preset without the path
+        tracer's fields, so its files keep their bytes)."""
+        out = asdict(self)
+        if self.renderer == "raycast":
+            del out["renderer"], out["spp"]
+        return out
 
 
 PRESETS = {
     "tiny": BenchmarkPreset("tiny", 64, 24, 4, 8, 2, 0.75, 20_000),
     "default": BenchmarkPreset("default", 200, 100, 10, 20, 3, 1.0, 200_000),
+    # The path-traced variants: the same scenes, views and edits, rendered by Mitsuba 3 at 256 spp
+    # (seed-to-seed PSNR >= 40 dB on every scene, experiments/pathtraced_noise.py).
+    "tiny_pt": BenchmarkPreset("tiny_pt", 64, 24, 4, 8, 1, 0.75, 20_000, renderer="pathtrace", spp=256),
+    "default_pt": BenchmarkPreset("default_pt", 200, 100, 10, 20, 1, 1.0, 200_000, renderer="pathtrace", spp=256),
 }
 
 
@@ -70,12 +104,30 @@ def _rng(seed: int, scene_name: str, stream: str) -> np.random.Generator:
     return np.random.default_rng(key)
 
 
-def _render_split(caster: raycaster.RayCaster, c2ws: np.ndarray, preset: BenchmarkPreset, desc: str) -> np.ndarray:
-    res = preset.resolution
-    images = np.empty((len(c2ws), res, res, 4), np.float32)
+def _render_split(render, c2ws: np.ndarray, seeds: np.ndarray, resolution: int, desc: str) -> np.ndarray:
+    """``[n, H, W, 4]`` images ``render(c2ws[i], seeds[i])`` of every camera."""
+    images = np.empty((len(c2ws), resolution, resolution, 4), np.float32)
     for i in tqdm(range(len(c2ws)), desc=desc, leave=False, unit="img"):
-        images[i] = caster.render(c2ws[i], res, res, cameras.CAMERA_ANGLE_X, preset.supersample)
+        images[i] = render(c2ws[i], int(seeds[i]))
     return images
+
+
+def _renderer(scene: S.Scene, edit, preset: BenchmarkPreset):
+    """``(render(c2w, seed) -> [H, W, 4], description)``: the ground truth of ``edit`` (or the
+    original) in ``preset``'s renderer (the ray caster ignores the seed)."""
+    mesh, res, angle = S.truth_mesh(scene.mesh, edit), preset.resolution, cameras.CAMERA_ANGLE_X
+    if preset.renderer == "raycast":
+        caster = raycaster.RayCaster(mesh, scene.materials)
+        description = "open3d RaycastingScene, two-sided Blinn-Phong, 2 shadowed directional lights, sky reflection"
+        return (lambda c2w, seed: caster.render(c2w, res, res, angle, preset.supersample)), description
+    from ne_jax.benchmark import pathtracer  # imports Mitsuba: only for a path-traced preset
+
+    tracer = pathtracer.PathTracer(mesh, scene.materials, pathtracer.scene_surfaces(scene.name, scene.materials),
+                                   max_edge=pathtracer.pixel_footprint(res, angle), spp=preset.spp)
+    description = (f"mitsuba {tracer.mi.__version__} {pathtracer.VARIANT} path tracer, {preset.spp} spp, "
+                   f"max depth {pathtracer.MAX_DEPTH}, procedural environment map (sky and sun spots), "
+                   "diffuse/plastic/conductor materials")
+    return (lambda c2w, seed: tracer.render(c2w, res, res, angle, seed=seed)), description
 
 
 def _write_points(path: Path, samples: dict[str, np.ndarray]) -> None:
@@ -105,25 +157,31 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
             t1 = time.perf_counter()
             target = out if edit is None else out / "edits" / edit_name
             target.mkdir(parents=True, exist_ok=True)
-            caster = raycaster.RayCaster(S.truth_mesh(scene.mesh, edit), scene.materials)
+            render, description = _renderer(scene, edit, preset)
             splits = ("train", "val", "test") if edit is None else ("train", "test")
+            images = 0
             for split in splits:
-                images = _render_split(caster, S.truth_cameras(edit, cams[split]), preset,
-                                       f"{scene_name}/{edit_name or 'original'}/{split}")
-                write_split(target, split, images, cams[split], cameras.CAMERA_ANGLE_X)
+                # one renderer seed per image (the path tracer's noise), independent across variants and splits
+                seeds = _rng(seed, scene_name, f"render/{edit_name or 'original'}/{split}").integers(
+                    0, 2**31, len(cams[split]))
+                rendered = _render_split(render, S.truth_cameras(edit, cams[split]), seeds, preset.resolution,
+                                         f"{scene_name}/{edit_name or 'original'}/{split}")
+                write_split(target, split, rendered, cams[split], cameras.CAMERA_ANGLE_X)
+                images += len(rendered)
             _write_points(target / "points.ply", samples if edit is None else S.edit_samples(samples, edit))
             meta = {
                 "scene": scene_name,
                 "difficulty": scene.difficulty,
                 "edit": edit_name,
                 "edit_description": None if edit is None else edit.description,
-                "preset": asdict(preset),
+                "preset": preset.record(),
                 "seed": seed,
                 "near": cameras.NEAR,
                 "far": cameras.FAR,
-                "renderer": ("open3d RaycastingScene, two-sided Blinn-Phong, 2 shadowed directional lights, "
-                             "sky reflection"),
+                "renderer": description,
             }
+            if preset.renderer != "raycast":  # the one field that is not the same bytes for a seed
+                meta["generation"] = {"images": images, "seconds": round(time.perf_counter() - t1, 2)}
             if edit is not None and edit.rigid is not None:
                 meta["rigid"] = [list(row) for row in edit.rigid]
                 meta["moves_environment"] = edit.moves_environment
@@ -149,7 +207,7 @@ def generate_benchmark(root, preset: str | BenchmarkPreset = "tiny", scenes=None
     per_scene = {}
     for name in tqdm(names, desc=f"benchmark[{preset.name}]", unit="scene"):
         per_scene[name] = generate_scene(name, preset, root, seed)
-    report = {"preset": asdict(preset), "seed": seed, "seconds": time.perf_counter() - t0, "scenes": per_scene}
+    report = {"preset": preset.record(), "seed": seed, "seconds": time.perf_counter() - t0, "scenes": per_scene}
     atomic_write_json(root / "timings.json", report)
     return report
 
