@@ -2,6 +2,7 @@
 
     python experiments/make_benchmark.py                      # tiny and default presets
     python experiments/make_benchmark.py --presets tiny       # just tiny
+    python experiments/make_benchmark.py --preset tiny_pt --out DIR   # the path-traced tiny set (Mitsuba 3)
 
 Writes the scenes to ``--out/<preset>/``, the contact sheet of each preset to
 ``experiments/results/benchmark_contact_sheet_<preset>.png`` and the timings to
@@ -17,7 +18,8 @@ import platform
 import shutil
 from pathlib import Path
 
-from ne_jax.benchmark.generate import generate_benchmark, get_preset, list_variants
+from ne_jax.benchmark.generate import PRESETS, generate_benchmark, get_preset, list_variants
+from ne_jax.provenance import commit
 from ne_jax.viz import contact_sheet
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -25,18 +27,23 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--presets", nargs="+", default=["tiny", "default"])
-    parser.add_argument("--out", default="outputs/benchmark")
+    parser.add_argument("--presets", "--preset", nargs="+", default=["tiny", "default"],
+                        help=f"presets to generate, of {sorted(PRESETS)} (default: tiny default)")
+    parser.add_argument("--out", default="outputs/benchmark", help="each preset goes to OUT/<preset>/")
+    parser.add_argument("--scenes", nargs="+", default=None, help="only these scenes (default: all)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 
+    for name in args.presets:
+        if name not in PRESETS:
+            parser.error(f"--presets: unknown preset {name!r}; expected one of {sorted(PRESETS)}")
     rows = {}
     for name in args.presets:
         preset = get_preset(name)
         root = Path(args.out) / name
         if root.exists():
             shutil.rmtree(root)
-        report = generate_benchmark(root, preset, seed=args.seed)
+        report = generate_benchmark(root, preset, args.scenes, seed=args.seed)
         n_scenes = len(report["scenes"])
         n_edits = sum(edit is not None for _, edit, _ in list_variants(root))  # over all scenes
         images = (n_scenes * (preset.train_views + preset.val_views + preset.test_views)
@@ -47,6 +54,8 @@ def main(argv=None) -> None:
         rows[name] = {
             "resolution": preset.resolution,
             "supersample": preset.supersample,
+            "renderer": preset.renderer,
+            "spp": preset.spp if preset.renderer == "pathtrace" else None,
             "scenes": n_scenes,
             "variants_per_scene": 1 + n_edits // n_scenes,
             "images": images,
@@ -55,18 +64,26 @@ def main(argv=None) -> None:
             "megabytes": round(size / 2**20, 1),
             "per_scene_seconds": {k: round(v["total"], 2) for k, v in report["scenes"].items()},
             "contact_sheet": str(sheet.relative_to(RESULTS.parent.parent)),
+            "seed": args.seed,
+            "commit": commit(),
+            "command": "python experiments/make_benchmark.py --presets " + name
+                       + (f" --scenes {' '.join(args.scenes)}" if args.scenes else ""),
         }
-    machine = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}
+        print(f"benchmark[{name}]: {images} images in {report['seconds']:.1f} s "
+              f"({1000 * report['seconds'] / images:.0f} ms per image) -> {root}", flush=True)
+    machine = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+               "loadavg": [round(x, 2) for x in os.getloadavg()]}
     out = RESULTS / "make_benchmark.json"
     previous = json.loads(out.read_text()) if out.exists() else {}
     previous.setdefault("presets", {}).update(rows)
     previous["machine"] = machine
     out.write_text(json.dumps(previous, indent=2) + "\n")
 
-    print("\n| preset | resolution | ss | scenes x variants | images | time | per image | size |")
+    print("\n| preset | resolution | samples / pixel | scenes x variants | images | time | per image | size |")
     print("|---|---|---|---|---|---|---|---|")
     for name, r in rows.items():
-        print(f"| {name} | {r['resolution']}x{r['resolution']} | {r['supersample']}x{r['supersample']} | "
+        samples = f"{r['spp']} spp" if r["renderer"] == "pathtrace" else f"{r['supersample']}x{r['supersample']}"
+        print(f"| {name} | {r['resolution']}x{r['resolution']} | {samples} | "
               f"{r['scenes']} x {r['variants_per_scene']} | {r['images']} | {r['seconds']:.1f} s | "
               f"{r['ms_per_image']:.0f} ms | {r['megabytes']:.0f} MB |")
     print(f"\nmachine: {machine}; results in {out}")
