@@ -598,7 +598,7 @@ def run_image(run_dir: Path, out_dir: Path, command: str, edit: str = "bend", sc
     from ne_jax.benchmark.edits import benchmark_edit
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.edit.model import edit_model
-    from ne_jax.train.loop import load_trained
+    from ne_jax.train.model import load_trained
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     sz = ImageSizes.quick() if quick else ImageSizes.full()

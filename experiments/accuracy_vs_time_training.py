@@ -6,7 +6,7 @@
 
 The image study (part 2) changes render settings of one trained model; settings judged that way do
 not transfer (a model adapts its features to the K, ``s`` and tree it was trained with). Here every
-candidate is a whole :class:`~ne_jax.train.loop.RunConfig`: the preset with one knob changed (K,
+candidate is a whole :class:`~ne_jax.train.run.RunConfig`: the preset with one knob changed (K,
 samples per segment ``s``, steps, rays per batch, initial points), the joint 2K with half ``s`` (with
 the preset's and with half the steps; a candidate set narrower than 2K is widened to it), plus the
 preset again with another seed, whose spread is the training noise that any difference must
@@ -151,7 +151,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
 
 def is_finished(run, runs: Path) -> bool:
     """Whether ``run``'s cached run in ``runs`` has trained all its epochs."""
-    from ne_jax.train.loop import METRICS_FILE
+    from ne_jax.train.model import METRICS_FILE
 
     metrics = Path(runs) / config_key(run) / METRICS_FILE
     return metrics.is_file() and len(json.loads(metrics.read_text())["epochs"]) >= run.epochs
@@ -451,7 +451,7 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     import jax
 
     from ne_jax.data.nerf_synthetic import load_split
-    from ne_jax.train.loop import get_run_preset
+    from ne_jax.train.run import get_run_preset
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     scene_dir = Path(scene_dir)

@@ -53,7 +53,8 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     from ne_jax.geometry.points import PointState
     from ne_jax.render.renderer import PointScene, render_image
     from ne_jax.train import init_train_state, make_train_step
-    from ne_jax.train.loop import fit_segment_budget, get_run_preset
+    from ne_jax.train.loop import fit_segment_budget
+    from ne_jax.train.run import get_run_preset
     from ne_jax.train.sampler import Batch
 
     run = get_run_preset("tiny")

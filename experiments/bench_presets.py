@@ -53,7 +53,7 @@ def settings(quick: bool) -> list[tuple[str, object]]:
     """``(label, RunConfig)``: every preset; ``default`` walked in one 64-wide pass and with the paper's
     sampling; ``paper`` with 32 segment slots a ray (its capacity until it was measured) instead of 64."""
     from ne_jax.render.renderer import RenderConfig
-    from ne_jax.train.loop import PRESETS, RunConfig
+    from ne_jax.train.run import PRESETS, RunConfig
 
     out = [(name, make()) for name, make in PRESETS.items()]
     d = RunConfig.default()
@@ -106,7 +106,7 @@ def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, q
     from ne_jax.eval.views import evaluate_split
     from ne_jax.render.quadrature import at_test_time
     from ne_jax.render.renderer import PointScene, render_image
-    from ne_jax.train.loop import load_trained
+    from ne_jax.train.model import load_trained
     from ne_jax.train.sampler import build_pool
 
     chosen = settings(quick)

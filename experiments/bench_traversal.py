@@ -90,7 +90,7 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
     from ne_jax.data.rays import camera_rays
     from ne_jax.geometry.intersect import intersect
     from ne_jax.render.renderer import render_image
-    from ne_jax.train.loop import load_trained
+    from ne_jax.train.model import load_trained
 
     model = load_trained(run_dir)
     scene_dir = Path(scene_dir or model.scene_dir or "")

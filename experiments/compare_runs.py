@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("runs", type=Path, nargs=2, metavar="RUN")
     args = ap.parse_args(argv)
-    from ne_jax.train.loop import load_trained
+    from ne_jax.train.model import load_trained
 
     models = [load_trained(r) for r in args.runs]
     points = [m.state.point_state(m.scene.points) for m in models]

@@ -6,7 +6,7 @@ zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
     python experiments/deform_benchmark.py --scenes glossy --edits bend --no-finetune  # a quick look
 
 For each scene: the full model and every variant that needs its own model are trained with the
-preset's :class:`~ne_jax.train.loop.RunConfig` (cached in ``--runs``: a finished run is reused), then
+preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``: a finished run is reused), then
 for each edit and variant: :func:`~ne_jax.edit.model.edit_model` (zero-shot, scored on the edited
 ground truth) and :func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` epochs on the edited
 scene's training views (scored again). Writes ``experiments/results/deform_benchmark_<preset>.json``
@@ -38,18 +38,18 @@ from ne_jax.data.nerf_synthetic import composite, load_split
 from ne_jax.data.png import write_image
 from ne_jax.edit.apply import EditConfig
 from ne_jax.edit.model import edit_model, finetune
-from ne_jax.eval import evaluate_split
+from ne_jax.eval import evaluate_model
 from ne_jax.provenance import commit
-from ne_jax.train.loop import TrainedModel, get_run_preset, train
+from ne_jax.train.loop import train
+from ne_jax.train.model import TrainedModel
+from ne_jax.train.run import get_run_preset
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def score(model: TrainedModel, variant, scene_dir: Path) -> tuple[dict, np.ndarray]:
     split = load_split(scene_dir, "test")
-    run = model.run
-    report, images = evaluate_split(run.render, model.state.params, model.scene, split, run.background,
-                                    run.sampler.near, run.sampler.far, progress=False, image_fn=variant.image_fn())
+    report, images = evaluate_model(model, split, progress=False, image_fn=variant.image_fn())
     lp = report.get("lpips")
     return {"psnr": round(report["psnr"], 2), "ssim": round(report["ssim"], 4),
             "lpips": None if lp is None else round(lp, 4), "lost_segments": report["lost_segments"]}, images[0]
@@ -57,9 +57,9 @@ def score(model: TrainedModel, variant, scene_dir: Path) -> tuple[dict, np.ndarr
 
 def trained_model(run, scene_dir: Path, run_dir: Path, log) -> TrainedModel:
     t0 = time.perf_counter()
-    result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
+    model = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
     log(f"  model {run.name}: {time.perf_counter() - t0:.0f} s (cached runs return at once)")
-    return TrainedModel(run=run, state=result.state, scene=result.scene, scene_dir=scene_dir, meta={})
+    return model
 
 
 def main(argv=None) -> None:
@@ -162,10 +162,8 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
                 for f in dataclasses.fields(v.edit)
                 if (val := getattr(v.edit, f.name)) != getattr(EditConfig(), f.name))
             ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}{changed}"
-            result = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
-                              progress=False, log=lambda s: None)
-            finetuned[key] = TrainedModel(run=result.run, state=result.state, scene=result.scene,
-                                          scene_dir=truth, meta={})
+            finetuned[key] = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
+                                      progress=False, log=lambda s: None)
         rec["finetune"] = score(finetuned[key], v, truth)[0]
         rec["finetune_seconds"] = round(time.perf_counter() - t0, 1)
     return rec, image

@@ -34,7 +34,7 @@ from ne_jax.edit.fidelity import equivariance, exact_rigid_points
 from ne_jax.edit.ist import ISTConfig
 from ne_jax.provenance import commit
 from ne_jax.render.renderer import PointScene
-from ne_jax.train.loop import load_trained
+from ne_jax.train.model import load_trained
 
 RESULTS = Path(__file__).resolve().parent / "results"
 AXES = {"tilted_a": (1.0, 1.0, 2.0), "tilted_b": (2.0, -1.0, 0.5), "z": (0.0, 0.0, 1.0)}

@@ -27,7 +27,9 @@ from ne_jax.benchmark.variants import get_variant, variant_run
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.png import write_image
 from ne_jax.morph import MorphSettings, morph_models, strip
-from ne_jax.train.loop import TrainedModel, get_run_preset, load_trained, train
+from ne_jax.train.loop import train
+from ne_jax.train.model import TrainedModel, load_trained
+from ne_jax.train.run import get_run_preset
 
 RESULTS = Path(__file__).resolve().parent / "results"
 VARIANTS = ("full", "pointnerf_like")

@@ -38,7 +38,9 @@ from ne_jax.edit.differentiable import (
     make_edit_loss,
     recover_parameter,
 )
-from ne_jax.train.loop import RunConfig, fit_segment_budget, load_trained, train
+from ne_jax.train.loop import fit_segment_budget, train
+from ne_jax.train.model import load_trained
+from ne_jax.train.run import RunConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # The glossy scene's bend (ne_jax/benchmark/scenes.py make_glossy): everything but the angle is known.

@@ -32,10 +32,11 @@ from ne_jax.benchmark.generate import generate_benchmark, get_preset, seen_surfa
 from ne_jax.benchmark.scenes import SCENES
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.eval import evaluate_split, save_images
+from ne_jax.eval import evaluate_model, save_images
 from ne_jax.pointcloud.init import Views, ground_truth_cloud
 from ne_jax.pointcloud.metrics import chamfer
-from ne_jax.train.loop import get_run_preset, initial_cloud, train
+from ne_jax.train.loop import initial_cloud, train
+from ne_jax.train.run import get_run_preset
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -48,8 +49,7 @@ def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool 
     train_seconds = result.recorded_seconds  # summed over the sessions of a resumed run
     split = load_split(scene_dir, "test")
     t0 = time.perf_counter()
-    report, images = evaluate_split(run.render, result.state.params, result.scene, split, run.background,
-                                    run.sampler.near, run.sampler.far, progress=progress)
+    report, images = evaluate_model(result, split, progress=progress)
     eval_seconds = time.perf_counter() - t0
     save_images(images, run_dir / "eval_test" / "images", [f"{i:03d}.png" for i in range(len(images))])
     final = np.asarray(result.scene.points.xyz)[np.asarray(result.scene.points.alive)]

@@ -41,7 +41,7 @@ def _cmd_make_benchmark(args) -> int:
 
 def _run_config(args):
     """The preset with the command line's changes applied."""
-    from ne_jax.train.loop import InitConfig, get_run_preset
+    from ne_jax.train.run import InitConfig, get_run_preset
 
     run = get_run_preset(args.preset)
     if args.epochs is not None or args.steps_per_epoch is not None:
@@ -56,15 +56,14 @@ def _run_config(args):
     return run.replace(background=args.background, seed=args.seed)
 
 
-def _evaluate(run, params, scene, scene_dir: Path, split_name: str, out: Path, background, progress=True) -> dict:
-    """Render and score a split; write ``out/metrics.json`` and ``out/images/*.png``."""
+def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True) -> dict:
+    """Render and score a split of ``model``; write ``out/metrics.json`` and ``out/images/*.png``."""
     from ne_jax.atomic import atomic_write_json
     from ne_jax.data.nerf_synthetic import load_split
-    from ne_jax.eval import evaluate_split, save_images
+    from ne_jax.eval import evaluate_model, save_images
 
     split = load_split(scene_dir, split_name)
-    report, images = evaluate_split(run.render, params, scene, split, background, run.sampler.near,
-                                    run.sampler.far, progress=progress)
+    report, images = evaluate_model(model, split, progress=progress)
     names = [f"{i:03d}_{Path(p).name}.png" for i, p in enumerate(split.file_paths)]
     save_images(images, out / "images", names)
     atomic_write_json(out / "metrics.json", report)
@@ -87,14 +86,13 @@ def _cmd_train(args) -> int:
     result = train(run, scene_dir, out, resume=not args.restart, progress=not args.quiet)
     print(f"trained {run.total_steps} steps in {time.perf_counter() - t0:.1f} s -> {out}")
     if not args.no_eval and (scene_dir / "transforms_test.json").exists():
-        report = _evaluate(run, result.state.params, result.scene, scene_dir, "test", out / "eval_test",
-                           run.background, progress=not args.quiet)
+        report = _evaluate(result, scene_dir, "test", out / "eval_test", progress=not args.quiet)
         _print_eval(report, out / "eval_test")
     return 0
 
 
 def _load(args):
-    from ne_jax.train.loop import load_trained
+    from ne_jax.train.model import load_trained
 
     model = load_trained(args.run)
     scene_dir = Path(args.scene) if getattr(args, "scene", None) else model.scene_dir
@@ -110,9 +108,10 @@ def _need_scene(scene_dir, run) -> Path:
 def _cmd_eval(args) -> int:
     model, scene_dir = _load(args)
     scene_dir = _need_scene(scene_dir, args.run)
-    background = args.background or model.run.background
+    if args.background:
+        model = model.replace(run=model.run.replace(background=args.background))
     out = Path(args.out) if args.out else Path(args.run) / f"eval_{args.split}"
-    report = _evaluate(model.run, model.state.params, model.scene, scene_dir, args.split, out, background)
+    report = _evaluate(model, scene_dir, args.split, out)
     _print_eval(report, out)
     return 0
 
@@ -166,9 +165,7 @@ def _cmd_edit(args) -> int:
           f"IST from {report['good']} frames, {report['filled']} filled from neighbours, {report['identity']} identity "
           f"({report['seconds']:.1f} s) -> {out}")
     if edited.scene_dir is not None and not args.no_eval:
-        run = edited.run
-        ev = _evaluate(run, edited.state.params, edited.scene, edited.scene_dir, "test", out / "eval_test",
-                       run.background)
+        ev = _evaluate(edited, edited.scene_dir, "test", out / "eval_test")
         print("zero-shot ", end="")
         _print_eval(ev, out / "eval_test")
     elif edited.scene_dir is None:
@@ -188,8 +185,7 @@ def _cmd_finetune(args) -> int:
                       progress=not args.quiet)
     print(f"fine-tuned {result.run.total_steps} steps in {time.perf_counter() - t0:.1f} s -> {out}")
     if not args.no_eval:
-        ev = _evaluate(result.run, result.state.params, result.scene, scene_dir, "test", out / "eval_test",
-                       result.run.background, progress=not args.quiet)
+        ev = _evaluate(result, scene_dir, "test", out / "eval_test", progress=not args.quiet)
         _print_eval(ev, out / "eval_test")
     return 0
 
@@ -198,7 +194,7 @@ def _cmd_morph(args) -> int:
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.eval import orbit_cameras_for
     from ne_jax.morph import MorphSettings, morph_models
-    from ne_jax.train.loop import load_trained
+    from ne_jax.train.model import load_trained
 
     a, b = load_trained(args.run_a), load_trained(args.run_b)
     scene_dir = _need_scene(Path(args.scene) if args.scene else a.scene_dir, args.run_a)
@@ -227,7 +223,8 @@ def _cmd_demo(args) -> int:
     from ne_jax.benchmark.scenes import get_scene
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.eval import orbit_cameras_for, render_views, write_video
-    from ne_jax.train.loop import get_run_preset, train
+    from ne_jax.train.loop import train
+    from ne_jax.train.run import get_run_preset
     from ne_jax.viz import contact_sheet
 
     out = Path(args.out)
@@ -244,8 +241,7 @@ def _cmd_demo(args) -> int:
           f"initial cloud by visual-hull carving)")
     result = train(run, scene_dir, out / "run", resume=False)
     print("[3/4] evaluating the test views")
-    ev = _evaluate(run, result.state.params, result.scene, scene_dir, "test", out / "run" / "eval_test",
-                   run.background)
+    ev = _evaluate(result, scene_dir, "test", out / "run" / "eval_test")
     _print_eval(ev, out / "run" / "eval_test")
     print("[4/4] rendering an orbit")
     cameras = orbit_cameras_for(load_split(scene_dir, "test"), args.orbit_frames)

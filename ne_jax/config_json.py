@@ -44,6 +44,23 @@ def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
     raise TypeError(f"config value of type {type(cfg).__name__} cannot be stored as typed JSON: {cfg!r}")
 
 
+MOVED = {
+    "ne_jax.train.loop:RunConfig": "ne_jax.train.run:RunConfig",
+    "ne_jax.train.loop:InitConfig": "ne_jax.train.run:InitConfig",
+}
+"""Config types stored under an older module path -> where they live now (read side only: a run
+directory written before a move still loads and resumes)."""
+
+
+def _upgrade(data: Any) -> Any:
+    """``data`` with the type names of :data:`MOVED` replaced by the current ones."""
+    if isinstance(data, dict):
+        return {k: MOVED.get(v, v) if k == "__type__" else _upgrade(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [_upgrade(v) for v in data]
+    return data
+
+
 def _config_type(name: str) -> type:
     """The ``ne_jax`` dataclass named ``"module:QualName"`` (as :func:`config_to_json` writes it).
 
@@ -78,7 +95,7 @@ def config_from_json(data: Any) -> Any:
         return tuple(config_from_json(v) for v in data["__tuple__"])
     if isinstance(data, dict) and "__type__" in data:
         fields = {k: config_from_json(v) for k, v in data.items() if k != "__type__"}
-        return _config_type(data["__type__"])(**fields)
+        return _config_type(MOVED.get(data["__type__"], data["__type__"]))(**fields)
     if isinstance(data, list):
         return [config_from_json(v) for v in data]
     return data
@@ -104,6 +121,8 @@ def config_diff(found: Any, expected: Any, prefix: str = "") -> list[str]:
     def is_node(x):
         return isinstance(x, dict) and "__tuple__" not in x
 
+    if not prefix:
+        found = _upgrade(found)
     if is_node(found) and is_node(expected):
         out = []
         for k in sorted(set(found) | set(expected), key=str):
@@ -126,6 +145,3 @@ def _show(v: Any) -> str:
     if isinstance(v, dict) and "__tuple__" in v:
         return repr(tuple(v["__tuple__"]))
     return repr(v)
-
-
-# ---------------------------------------------------------------- pytrees <-> named arrays

@@ -14,7 +14,7 @@ from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.pointcloud.optimise import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
-from ne_jax.train.loop import InitConfig, RunConfig
+from ne_jax.train.run import InitConfig, RunConfig
 from ne_jax.train.sampler import SamplerConfig
 from ne_jax.train.state import TrainConfig
 

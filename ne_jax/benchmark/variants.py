@@ -2,7 +2,7 @@
 appendix's ablation table).
 
 A :class:`Variant` says how its model is trained (``train_changes``: a change of the full model's
-:class:`~ne_jax.train.loop.RunConfig`, or ``None`` to reuse the full model), whether the edited
+:class:`~ne_jax.train.run.RunConfig`, or ``None`` to reuse the full model), whether the edited
 model declares the IST effect, and which image renderer scores it:
 
 ==========================  ==================================================  =====  ========
@@ -41,7 +41,7 @@ from collections.abc import Callable
 from ne_jax.edit.apply import EditConfig
 from ne_jax.render.naive import naive_plot_image
 from ne_jax.render.quadrature import QuadratureConfig
-from ne_jax.train.loop import RunConfig
+from ne_jax.train.run import RunConfig
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Editing a trained model and fine-tuning the result.
 
-* :func:`edit_model`: a trained model (:class:`~ne_jax.train.loop.TrainedModel`) plus an edit gives an
+* :func:`edit_model`: a trained model (:class:`~ne_jax.train.model.TrainedModel`) plus an edit gives an
   edited model: the same colour model and per-point features, the edited cloud (positions, deletions,
   normals, IST) and the ``ist`` effect declared. Written to a run directory of its own (``config.json``,
   ``checkpoints/``, ``metrics.json`` with the edit's report), so every command that reads a run
@@ -19,7 +19,9 @@ import numpy as np
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import Edit
 from ne_jax.edit.targets import EditError, EditSource
-from ne_jax.train.loop import RunConfig, StartFrom, TrainedModel, TrainResult, save_trained, train
+from ne_jax.train.loop import StartFrom, train
+from ne_jax.train.model import TrainedModel, save_trained
+from ne_jax.train.run import RunConfig
 
 
 def edit_model(model: TrainedModel, edit: EditSource, out_dir: str | Path | None = None, *,
@@ -63,7 +65,7 @@ def finetune_config(run: RunConfig, epochs: int = 1, *, steps_per_epoch: int | N
 
 def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene_dir: str | Path | None = None,
              steps_per_epoch: int | None = None, train_ist: bool = False, optimise_points: bool = False,
-             resume: bool = True, progress: bool = True, log=print) -> TrainResult:
+             resume: bool = True, progress: bool = True, log=print) -> TrainedModel:
     """Fine-tune an edited ``model`` on the training views of ``scene_dir`` (default: the edited
     scene recorded with the model) into ``run_dir``; see :func:`finetune_config`.
 

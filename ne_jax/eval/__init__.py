@@ -14,6 +14,7 @@ from ne_jax.eval.metrics import (
 )
 from ne_jax.eval.views import (
     VIDEO_SUFFIXES,
+    evaluate_model,
     evaluate_split,
     orbit_cameras_for,
     render_views,
@@ -27,6 +28,7 @@ __all__ = [
     "LPIPS_NETS",
     "MSE_FLOOR",
     "VIDEO_SUFFIXES",
+    "evaluate_model",
     "evaluate_split",
     "gaussian_window",
     "lpips",

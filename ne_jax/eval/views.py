@@ -32,6 +32,7 @@ from ne_jax.data.rays import Camera
 from ne_jax.eval.metrics import LPIPS_DEFAULT_NET, LPIPS_MIN_SIZE, LPIPS_NETS, lpips, lpips_available, psnr, ssim
 from ne_jax.render.quadrature import at_test_time
 from ne_jax.render.renderer import PointScene, RenderConfig, render_image
+from ne_jax.train.model import TrainedModel
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
 
@@ -152,6 +153,13 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
         "views": views,
     }
     return report, images
+
+
+def evaluate_model(model: TrainedModel, split: SceneSplit, **kwargs) -> tuple[dict, np.ndarray]:
+    """:func:`evaluate_split` of ``model``: its render config, parameters, point scene, background and
+    near/far (``kwargs``: ``progress``, ``image_fn``, ``lpips_net``)."""
+    return evaluate_split(model.run.render, model.params, model.scene, split, model.background, model.near,
+                          model.far, **kwargs)
 
 
 def orbit_cameras_for(split_or_camera: SceneSplit | Camera, num_frames: int = 120, elevation_deg: float = 25.0,

@@ -36,7 +36,7 @@ from ne_jax.numerics import safe_normalize
 from ne_jax.render.quadrature import at_test_time
 from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import Effects, ShadeOut, ShadingConfig, background_color, shade
-from ne_jax.train.loop import TrainedModel
+from ne_jax.train.model import TrainedModel
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""Training: ray batches, losses, the train state, the jitted step and checkpoints."""
+"""Training: the run config and its presets, ray batches, losses, the train state, the jitted step,
+checkpoints, the training run and the trained model it returns."""
 
 from ne_jax.train.checkpoint import (
     CheckpointError,
@@ -7,6 +8,7 @@ from ne_jax.train.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
+from ne_jax.train.loop import StartFrom, TrainingDiverged, train
 from ne_jax.train.losses import (
     TERMS,
     LossConfig,
@@ -19,6 +21,8 @@ from ne_jax.train.losses import (
     sparsity_loss,
     total_loss,
 )
+from ne_jax.train.model import TrainedModel, load_trained, save_trained
+from ne_jax.train.run import InitConfig, RunConfig, get_run_preset, load_run_config
 from ne_jax.train.sampler import (
     Batch,
     RayPool,
@@ -33,6 +37,16 @@ from ne_jax.train.step import make_train_step
 
 __all__ = [
     "TERMS",
+    "InitConfig",
+    "RunConfig",
+    "StartFrom",
+    "TrainedModel",
+    "TrainingDiverged",
+    "get_run_preset",
+    "load_run_config",
+    "load_trained",
+    "save_trained",
+    "train",
     "Batch",
     "CheckpointError",
     "CheckpointNotFoundError",

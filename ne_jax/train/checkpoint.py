@@ -66,6 +66,9 @@ class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
     """The checkpoint path (or a file inside it) does not exist."""
 
 
+# ---------------------------------------------------------------- pytrees <-> named arrays
+
+
 def _key_name(k: Any) -> str:
     if isinstance(k, jax.tree_util.DictKey):
         return str(k.key)

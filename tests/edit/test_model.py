@@ -15,13 +15,15 @@ from ne_jax.cli import main
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.targets import EditError
-from ne_jax.eval import evaluate_split
+from ne_jax.eval import evaluate_model
 from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.pointcloud.optimise import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
 from ne_jax.train import SamplerConfig, TrainConfig
-from ne_jax.train.loop import InitConfig, RunConfig, load_trained, train
+from ne_jax.train.loop import train
+from ne_jax.train.model import load_trained
+from ne_jax.train.run import InitConfig, RunConfig
 
 MINI = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
                        detail=0.4, surface_samples=2000)
@@ -49,8 +51,7 @@ def trained(scene_dir, tmp_path_factory):
 
 def _psnr(model):
     split = load_split(model.scene_dir, "test")
-    report, _ = evaluate_split(model.run.render, model.state.params, model.scene, split, model.run.background,
-                               model.run.sampler.near, model.run.sampler.far, progress=False)
+    report, _ = evaluate_model(model, split, progress=False)
     return report["psnr"]
 
 

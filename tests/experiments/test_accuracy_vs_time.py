@@ -175,7 +175,7 @@ def test_image_study_files_and_schema(image_run):
     assert [t["target"] for t in res["targets"]] == ["original", "edit"]
     views = min(2, len(json.loads((Path(res["scene_dir"]) / "transforms_test.json").read_text())["frames"]))
     assert all(t["split"].startswith(f"test ({views} views") for t in res["targets"])
-    from ne_jax.train.loop import load_run_config
+    from ne_jax.train.run import load_run_config
 
     image = sys.modules["accuracy_vs_time_image"]  # loaded by main
     own = load_run_config(run_dir).render
@@ -282,7 +282,7 @@ def test_compare_runs_same_and_different(image_run, tmp_path, capsys):
     assert "every array equal bit for bit: True" in capsys.readouterr().out
     import jax
 
-    from ne_jax.train.loop import load_trained, save_trained
+    from ne_jax.train.model import load_trained, save_trained
 
     model = load_trained(run_dir)
     nudged = model.state.replace(params=jax.tree_util.tree_map(lambda a: a + 1e-3, model.state.params))
@@ -333,7 +333,7 @@ def test_training_study_cli_passes_finished_only(mini, tmp_path):
 
 
 def test_training_candidates_change_one_knob():
-    from ne_jax.train.loop import RunConfig
+    from ne_jax.train.run import RunConfig
 
     tr = _training()
     own = RunConfig.tiny()
@@ -367,7 +367,7 @@ def test_training_candidates_change_one_knob():
 def test_short_candidates_for_hour_long_presets():
     from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.render.quadrature import QuadratureConfig
-    from ne_jax.train.loop import RunConfig
+    from ne_jax.train.run import RunConfig
 
     tr = _training()
     own = RunConfig.default()

@@ -53,7 +53,7 @@ def test_a_short_run_writes_the_table(tmp_path):
 
 
 def test_scenes_accumulate_only_within_one_config(tmp_path):
-    from ne_jax.train.loop import get_run_preset
+    from ne_jax.train.run import get_run_preset
 
     tb = _load()
     run = get_run_preset("tiny")

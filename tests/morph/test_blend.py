@@ -32,7 +32,8 @@ from ne_jax.render import renderer
 from ne_jax.render.quadrature import at_test_time
 from ne_jax.render.renderer import PointScene, RenderConfig, render_image
 from ne_jax.render.shading import Effects, init_color_model, shade
-from ne_jax.train.loop import RunConfig, TrainedModel, save_trained
+from ne_jax.train.model import TrainedModel, save_trained
+from ne_jax.train.run import RunConfig
 from ne_jax.train.state import init_train_state
 
 from tests.mini_presets import mini_benchmark
@@ -158,8 +159,8 @@ def run_dirs(models, tmp_path_factory):
     generate_scene("glossy", preset, root, seed=0)
     a, b = models
     scene = root / "glossy"
-    save_trained(TrainedModel(a.run, a.state, a.scene, scene, {}), root / "a")
-    save_trained(TrainedModel(b.run, b.state, b.scene, scene, {}), root / "b")
+    save_trained(a.replace(scene_dir=scene), root / "a")
+    save_trained(b.replace(scene_dir=scene), root / "b")
     return root
 
 

@@ -29,7 +29,7 @@ def test_fields_added_later_keep_old_keys():
     import hashlib
 
     from ne_jax.geometry.kdtree import KDTreeConfig
-    from ne_jax.train.loop import RunConfig
+    from ne_jax.train.run import RunConfig
 
     added = [f.name for f in dataclasses.fields(KDTreeConfig) if f.metadata.get(cj.ADDED_LATER)]
     assert added == ["first_pass_frontier", "retry_share"]
@@ -58,3 +58,16 @@ def test_a_field_added_later_at_its_default_is_no_difference():
     assert cj.config_diff(old, changed) == ["train_ist (missing in checkpoint; run has True)"]
     old["lr"] = 123.0
     assert len(cj.config_diff(old, expected)) == 1
+
+
+def test_a_config_stored_under_a_moved_type_name_reads_back_and_resumes():
+    """A run directory written while ``RunConfig`` lived in ``ne_jax.train.loop`` still loads, and its
+    config is no difference from today's (so the run resumes)."""
+    from ne_jax.train.run import RunConfig
+
+    run = RunConfig.tiny()
+    stored = json.loads(json.dumps(cj.config_to_json(run)).replace("ne_jax.train.run:", "ne_jax.train.loop:"))
+    assert stored["__type__"] == "ne_jax.train.loop:RunConfig"
+    assert cj.config_from_json(stored) == run
+    assert cj.config_diff(stored, cj.config_to_json(run)) == []
+    assert cj.config_diff(stored, cj.config_to_json(run.replace(seed=1))) == ["seed: checkpoint 0, run 1"]

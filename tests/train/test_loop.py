@@ -25,7 +25,8 @@ from ne_jax.pointcloud.optimise import (
 )
 from ne_jax.render.renderer import PointScene
 from ne_jax.train import CheckpointError, TrainConfig, make_train_step, sample_batch
-from ne_jax.train.loop import load_trained, train
+from ne_jax.train.loop import train
+from ne_jax.train.model import load_trained
 from ne_jax.train.sampler import build_pool
 
 from tests.mini_presets import TRAIN_SCENE, mini_run

@@ -10,7 +10,7 @@ import pytest
 
 from ne_jax.cli import build_parser
 from ne_jax.config_json import config_key, config_to_json
-from ne_jax.train.loop import PRESETS, RunConfig
+from ne_jax.train.run import PRESETS, RunConfig
 from ne_jax.train.state import TrainConfig
 
 GOLDEN = Path(__file__).parent / "golden"

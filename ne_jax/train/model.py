@@ -1,0 +1,160 @@
+"""A trained model as one object (:class:`TrainedModel`), and its run directory on disk.
+
+A run directory holds::
+
+    run_dir/
+        config.json      the resolved RunConfig (typed; :func:`~ne_jax.train.run.load_run_config`)
+        metrics.json     the scene folder, the initial cloud's provenance and one record per epoch
+        checkpoints/     ckpt_<step>/ and latest (see :mod:`ne_jax.train.checkpoint`)
+        tree_rest.npz    only for an edited model whose K-D tree is carried (:data:`REST_FILE`)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
+from ne_jax.config_json import config_to_json
+from ne_jax.data.rays import Camera
+from ne_jax.geometry.points import PointState
+from ne_jax.render.renderer import PointScene, RenderConfig, RenderOut, render_image
+from ne_jax.train.checkpoint import load_checkpoint, save_checkpoint
+from ne_jax.train.run import CONFIG_FILE, RunConfig, load_run_config
+from ne_jax.train.state import TrainState
+
+METRICS_FILE = "metrics.json"
+CHECKPOINT_DIR = "checkpoints"
+REST_FILE = "tree_rest.npz"
+"""In a run directory whose K-D tree is carried through an edit: the positions and mask the tree was
+built on (``xyz``, ``alive``), from which :func:`load_trained` carries it again."""
+
+
+def _write_rest(run_dir: Path, scene: PointScene) -> None:
+    """Record where ``scene``'s tree was built (a carried tree only; otherwise remove the record)."""
+    path = Path(run_dir) / REST_FILE
+    if scene.rest_xyz is None:
+        path.unlink(missing_ok=True)
+        return
+    buf = io.BytesIO()
+    np.savez(buf, xyz=np.asarray(scene.rest_xyz), alive=np.asarray(scene.rest_alive))
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _scene_of(points: PointState, render: RenderConfig, run_dir: Path) -> PointScene:
+    """The scene of ``points``: the tree carried from the run directory's rest record when it has one
+    (an edited model), else built."""
+    path = Path(run_dir) / REST_FILE
+    if not path.is_file():
+        return PointScene.build(points, render)
+    with np.load(path) as rest:
+        return PointScene.carried(rest["xyz"], rest["alive"], points, render)
+
+
+def _json_safe(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    return x
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedModel:
+    """A trained (or edited) model as one object: the run config (render, train and sampler configs,
+    background, near/far), the train state (MLP parameters and the point cloud), the point scene
+    (the cloud with its K-D tree), and where it came from. :func:`~ne_jax.train.loop.train` returns
+    one, :func:`load_trained` reads one from a run directory, :func:`save_trained` writes one.
+
+    ``scene_dir``: the scene folder it was trained on (or the edited scene's ground truth; ``None``
+    when unknown); ``run_dir``: its run directory (``None`` for a model only in memory);
+    ``history``: one record per epoch (as in ``metrics.json``); ``initial``: the initial cloud's
+    provenance; ``meta``: the checkpoint's metadata."""
+
+    run: RunConfig
+    state: TrainState
+    scene: PointScene
+    scene_dir: Path | None = None
+    run_dir: Path | None = None
+    history: list = dataclasses.field(default_factory=list)
+    initial: dict = dataclasses.field(default_factory=dict)
+    meta: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def params(self):
+        """The colour model's parameters (a pytree)."""
+        return self.state.params
+
+    @property
+    def near(self) -> float:
+        return self.run.sampler.near
+
+    @property
+    def far(self) -> float:
+        return self.run.sampler.far
+
+    @property
+    def background(self):
+        return self.run.background
+
+    @property
+    def recorded_seconds(self) -> float:
+        """Training wall time as the loop recorded it (initial cloud, epochs with their compiles,
+        point-cloud rounds), summed over every session of a resumed run."""
+        s = float(self.initial.get("seconds", 0.0))
+        for e in self.history:
+            s += float(e.get("train_seconds", 0.0)) + float(e.get("points", {}).get("seconds", 0.0))
+        return s
+
+    def render_image(self, camera: Camera, *, progress: bool = False) -> RenderOut:
+        """Render one camera's image (see :func:`~ne_jax.render.renderer.render_image`)."""
+        return render_image(self.run.render, self.params, self.scene, camera, self.background, self.near, self.far,
+                            progress=progress)
+
+    def replace(self, **changes) -> TrainedModel:
+        return dataclasses.replace(self, **changes)
+
+
+def load_trained(run_dir: str | Path) -> TrainedModel:
+    """The latest checkpoint of a run directory written by :func:`train`, with its config and the
+    K-D tree rebuilt (or carried, for an edited model: :data:`REST_FILE`). ``scene_dir``,
+    ``history`` and ``initial`` are read from ``metrics.json`` (``None``/empty if absent). Raises
+    ``FileNotFoundError`` / :class:`CheckpointError` naming what is missing or wrong."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"{run_dir}: expected a training run directory (from `ne-jax train`), found nothing")
+    run = load_run_config(run_dir)
+    state, points, meta = load_checkpoint(run_dir / CHECKPOINT_DIR, run.train, run.render)
+    file = run_dir / METRICS_FILE
+    metrics = json.loads(file.read_text(encoding="utf-8")) if file.is_file() else {}
+    scene_dir = Path(metrics["scene_dir"]) if metrics.get("scene_dir") else None
+    return TrainedModel(run=run, state=state, scene=_scene_of(points, run.render, run_dir), scene_dir=scene_dir,
+                        run_dir=run_dir, history=list(metrics.get("epochs", [])),
+                        initial=dict(metrics.get("initial_cloud", {})), meta=meta)
+
+
+def save_trained(model: TrainedModel, run_dir: str | Path, metrics: dict | None = None,
+                 extra: dict | None = None) -> Path:
+    """Write ``model`` as a run directory that :func:`load_trained` reads (``config.json``,
+    ``metrics.json`` — ``metrics`` plus the model's ``scene_dir`` — and one checkpoint with ``extra``),
+    atomically: the directory appears complete or not at all."""
+    metrics = {"scene_dir": str(Path(model.scene_dir).resolve()) if model.scene_dir is not None else None,
+               **(metrics or {})}
+    points = model.state.point_state(model.scene.points)
+    with atomic_directory(run_dir) as tmp:
+        atomic_write_text(tmp / CONFIG_FILE, json.dumps(config_to_json(model.run), indent=2) + "\n")
+        atomic_write_text(tmp / METRICS_FILE, json.dumps(_json_safe(metrics), indent=2, allow_nan=False) + "\n")
+        save_checkpoint(tmp / CHECKPOINT_DIR, model.state, points, model.run.train, model.run.render,
+                        extra=extra, keep=1)
+        _write_rest(tmp, model.scene)
+    return Path(run_dir)
+
+
+__all__ = ["CHECKPOINT_DIR", "METRICS_FILE", "REST_FILE", "TrainedModel", "load_trained", "save_trained"]

@@ -1,0 +1,185 @@
+"""The run config: everything a training run needs, its named presets (one registry), and reading
+it back from a run directory's ``config.json``."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+from ne_jax.config_json import ConfigError, config_from_json
+from ne_jax.geometry.kdtree import KDTreeConfig
+from ne_jax.pointcloud.init import (
+    CarveConfig,
+)
+from ne_jax.pointcloud.normals import NormalConfig
+from ne_jax.pointcloud.optimise import PointOptConfig
+from ne_jax.render.quadrature import QuadratureConfig
+from ne_jax.render.renderer import RenderConfig
+from ne_jax.train.sampler import SamplerConfig
+from ne_jax.train.state import TrainConfig
+
+INIT_SOURCES = ("carving", "ply", "ground_truth")
+CONFIG_FILE = "config.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class InitConfig:
+    """Where the initial cloud comes from (hashable)."""
+
+    source: str = "carving"
+    """``"carving"`` (visual hull of the training masks), ``"ply"`` (``ply_path``), or
+    ``"ground_truth"`` (the benchmark's surface samples: only when asked for; results are labelled)."""
+    ply_path: str | None = None
+    """The user's PLY for ``source="ply"``."""
+    carve: CarveConfig = CarveConfig(bounds=((-1.1,) * 3, (1.1,) * 3), resolution=128, num_points=20_000)
+    """Carving settings (the benchmark's objects lie in ``[-1, 1]^3``)."""
+    capacity_headroom: float = 1.5
+    """Initial capacity ``ceil(N * headroom)``: room for growth before a re-allocation."""
+
+    def __post_init__(self):
+        if self.source not in INIT_SOURCES:
+            raise ValueError(f"InitConfig.source: expected one of {INIT_SOURCES}, found {self.source!r}")
+        if self.source == "ply" and not self.ply_path:
+            raise ValueError("InitConfig.ply_path: expected a PLY file for source='ply', found None")
+        if not self.capacity_headroom >= 1:
+            raise ValueError(f"InitConfig.capacity_headroom: expected >= 1, found {self.capacity_headroom}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything a training run needs (hashable, saved as ``config.json``). Presets :meth:`tiny`,
+    :meth:`default`, :meth:`paper`; change a preset with :meth:`replace` / :meth:`with_schedule`.
+
+    The learning-rate schedule (``train.total_steps``) of a preset spans the run
+    (``epochs * steps_per_epoch``), and keeps spanning it however the length is changed: the preset's
+    keyword arguments, :meth:`replace` and :meth:`with_schedule` all re-fit it. A schedule of another
+    length is kept only when asked for: ``replace(train=...)`` with another ``total_steps``, or a
+    config built with one (``RunConfig(...)`` without :meth:`with_schedule`)."""
+
+    name: str = "default"
+    """Preset name (informational)."""
+    render: RenderConfig = RenderConfig()
+    train: TrainConfig = TrainConfig()
+    sampler: SamplerConfig = SamplerConfig()
+    points: PointOptConfig = PointOptConfig()
+    normals: NormalConfig = NormalConfig()
+    init: InitConfig = InitConfig()
+    epochs: int = 16
+    steps_per_epoch: int = 1000
+    point_rounds: tuple[int, int] = (4, 12)
+    """The cloud is optimised after epochs ``first .. last`` (1-based, inclusive; docs/design.md: 4-12)."""
+    background: str = "white"
+    """The colour behind the object in training and evaluation (``"white"``, ``"black"``)."""
+    seed: int = 0
+    checkpoint_keep: int = 3
+    log_every: int = 25
+    """Steps between progress-bar updates (each reads the metrics back from the device)."""
+
+    def __post_init__(self):
+        if int(self.epochs) < 1 or int(self.steps_per_epoch) < 1:
+            raise ValueError(f"RunConfig: expected epochs >= 1 and steps_per_epoch >= 1, found "
+                             f"{self.epochs} and {self.steps_per_epoch}")
+        a, b = self.point_rounds
+        if not 1 <= a <= b + 1:
+            raise ValueError("RunConfig.point_rounds: expected (first, last) with 1 <= first <= last + 1, "
+                             f"found {self.point_rounds}")
+
+    def replace(self, **changes) -> RunConfig:
+        """This config with ``changes``; a schedule that spans the run (:attr:`schedule_spans_run`)
+        is re-fitted to a new ``epochs`` / ``steps_per_epoch``, unless ``changes`` give a ``train``
+        with another ``total_steps`` (then that one is kept)."""
+        new = dataclasses.replace(self, **changes)
+        explicit = "train" in changes and changes["train"].total_steps != self.train.total_steps
+        if self.schedule_spans_run and not explicit and not new.schedule_spans_run:
+            new = dataclasses.replace(new, train=new.train.replace(total_steps=new.total_steps))
+        return new
+
+    def with_schedule(self, epochs: int | None = None, steps_per_epoch: int | None = None) -> RunConfig:
+        """Change the length of the run (``None``: keep); the cosine decay spans the new length
+        (also when it did not span the old one)."""
+        epochs = self.epochs if epochs is None else int(epochs)
+        steps = self.steps_per_epoch if steps_per_epoch is None else int(steps_per_epoch)
+        return dataclasses.replace(self, epochs=epochs, steps_per_epoch=steps,
+                                   train=self.train.replace(total_steps=epochs * steps))
+
+    @property
+    def total_steps(self) -> int:
+        """Steps of the whole run: ``epochs * steps_per_epoch``."""
+        return self.epochs * self.steps_per_epoch
+
+    @property
+    def schedule_spans_run(self) -> bool:
+        """Whether the learning-rate schedule decays over exactly the run's :attr:`total_steps`."""
+        return int(self.train.total_steps) == self.total_steps
+
+    def optimises_points_after(self, epoch: int) -> bool:
+        """Whether a point-cloud round follows epoch ``epoch`` (1-based); never after the last."""
+        a, b = self.point_rounds
+        return a <= epoch <= b and epoch < self.epochs
+
+    @classmethod
+    def tiny(cls, **changes) -> RunConfig:
+        """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
+        of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
+        over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3)."""
+        render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=32, frontier_capacity=32, knn_k=16),
+                                   quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)))
+        base = cls(name="tiny", render=render, sampler=SamplerConfig(batch_size=1024),
+                   train=TrainConfig(lr=5e-3), points=PointOptConfig(grow_rays=4096),
+                   epochs=6, steps_per_epoch=125, point_rounds=(2, 4))
+        return base.with_schedule().replace(**changes)
+
+    @classmethod
+    def default(cls, **changes) -> RunConfig:
+        """The benchmark's ``default`` preset (200 px scenes), sized to train in about an hour on one
+        CPU core: K = 16 of 32 candidates, 2 rendering levels, s = 4, 6 (the paper's per-sample
+        settings, :meth:`RenderConfig.default`, cost about 4x the time per step; see
+        docs/studies/accuracy_vs_time.md). The tree is walked in two passes, 16 nodes wide and then
+        64 for at most a quarter of the rays: on the benchmark's glossy scene this trains the same model bit for
+        bit as one 64-wide pass, in 0.885x the time."""
+        render = RenderConfig.default(tree=KDTreeConfig.default(knn_k=16, candidate_min=32, num_render_levels=2,
+                                                                first_pass_frontier=16, retry_share=0.25),
+                                      quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)))
+        base = cls(name="default", render=render,
+                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
+                   sampler=SamplerConfig(batch_size=2048), train=TrainConfig(lr=5e-3),
+                   epochs=12, steps_per_epoch=500, point_rounds=(3, 9))
+        return base.with_schedule().replace(**changes)
+
+    @classmethod
+    def paper(cls, **changes) -> RunConfig:
+        """The paper's settings: 4096 rays per batch, the fixed 21-level tree, lr 2e-3, rounds after
+        epochs 4-12 (a GPU-sized run)."""
+        base = cls(name="paper", render=RenderConfig.paper(quadrature=QuadratureConfig()),
+                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
+                   sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),
+                   epochs=16, steps_per_epoch=5000, point_rounds=(4, 12))
+        return base.with_schedule().replace(**changes)
+
+
+PRESETS = {"tiny": RunConfig.tiny, "default": RunConfig.default, "paper": RunConfig.paper}
+
+
+def get_run_preset(name: str) -> RunConfig:
+    if name not in PRESETS:
+        raise KeyError(f"unknown training preset {name!r}; expected one of {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+def load_run_config(path: str | Path) -> RunConfig:
+    """A :class:`RunConfig` from a run directory's ``config.json`` (or the file itself)."""
+    path = Path(path)
+    file = path / CONFIG_FILE if path.is_dir() else path
+    if not file.is_file():
+        raise FileNotFoundError(f"{file}: expected a run config (config.json of a training run), found nothing")
+    try:
+        cfg = config_from_json(json.loads(file.read_text(encoding="utf-8")))
+    except (json.JSONDecodeError, UnicodeDecodeError, TypeError, ConfigError) as e:
+        raise ValueError(f"{file}: expected a RunConfig in JSON, found unreadable data ({e})") from None
+    if not isinstance(cfg, RunConfig):
+        raise ValueError(f"{file}: expected a RunConfig, found {type(cfg).__name__}")
+    return cfg
+
+
+__all__ = ["CONFIG_FILE", "INIT_SOURCES", "PRESETS", "InitConfig", "RunConfig", "get_run_preset", "load_run_config"]
