@@ -218,6 +218,27 @@ def _cmd_morph(args) -> int:
     return 0
 
 
+def _cmd_view(args) -> int:
+    try:
+        from ne_jax.view.viewer import Viewer
+    except ImportError as e:
+        raise ValueError(f"the viewer needs the 'view' extra (viser): pip install -e '.[view]' ({e})") from None
+
+    viewer = Viewer(args.run, port=args.port, host=args.host, max_side=args.max_side)
+    print(f"ne-jax view: serving {args.run} at {viewer.url} (open it in a browser; Ctrl+C stops)")
+    if args.host in ("127.0.0.1", "localhost", "::1"):
+        print(f"on a remote machine, forward the port first: ssh -N -L {viewer.port}:localhost:{viewer.port} "
+              f"USER@MACHINE, then open http://localhost:{viewer.port} on your own")
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from ne_jax.benchmark.generate import generate_benchmark
     from ne_jax.benchmark.scenes import get_scene
@@ -374,6 +395,14 @@ def build_parser() -> argparse.ArgumentParser:
     mo.add_argument("--seed", type=int, default=0, help="seed of the subsample when the clouds differ in size")
     mo.add_argument("--quiet", action="store_true", help="no progress bar")
     mo.set_defaults(func=_cmd_morph)
+
+    vw = sub.add_parser("view", help="look at a trained run and edit it in the browser (needs the 'view' extra)")
+    vw.add_argument("run", help="a run directory (from `ne-jax train` or `ne-jax edit`)")
+    vw.add_argument("--port", type=int, default=8080, help="port to serve on (default: 8080; 0: any free port)")
+    vw.add_argument("--host", default="127.0.0.1",
+                    help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
+    vw.add_argument("--max-side", type=int, default=256, help="longest side of a full-resolution frame (default: 256)")
+    vw.set_defaults(func=_cmd_view)
     return parser
 
 

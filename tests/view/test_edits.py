@@ -44,7 +44,8 @@ def test_region_selection_against_a_loop(points):
     box = E.Region.make("box", (0.1, -0.2, 0.3), (0.8, 0.6, 1.0), _quat((0, 0, 1), 30))
     r = E.quat_to_matrix(_quat((0, 0, 1), 30))
     want = [i for i in range(points.capacity)
-            if alive[i] and all(abs(float(r[:, k] @ (xyz[i] - (0.1, -0.2, 0.3)))) <= (0.4, 0.3, 0.5)[k] for k in range(3))]
+            if alive[i] and all(abs(float(r[:, k] @ (xyz[i] - (0.1, -0.2, 0.3)))) <= (0.4, 0.3, 0.5)[k]
+                                for k in range(3))]
     np.testing.assert_array_equal(E.select_region(edit, box), want)
     sphere = E.Region.make("sphere", (0, 0, 0), 0.5)
     want = [i for i in range(points.capacity) if alive[i] and np.linalg.norm(xyz[i]) <= 0.5]
