@@ -8,7 +8,8 @@ values composited over white, PSNR over the whole image (``psnr``) and over the 
 covers (``psnr_object``, stricter: the empty background is noise-free). Two independent renders differ
 by twice the variance of one, so one render's PSNR against the converged image is about 3 dB higher
 than the seed-to-seed figure (``psnr_vs_converged`` = ``psnr + 3.01``). Also: the time per image
-and the projected time of the whole preset (images x the mean time per image).
+(wall clock and process CPU time) and the projected time of the whole preset (images x the mean time
+per image; on an idle machine: the CPU time spread over every core).
 
 Outputs ``experiments/results/pathtraced_noise.{json,md}``. Run from the repository root::
 
@@ -69,16 +70,18 @@ def measure(preset, scene_name: str, spp: int, view: int, seeds=(1, 2)) -> dict:
                           max_edge=P.pixel_footprint(res, angle), spp=spp)
     build = time.perf_counter() - t0
     c2w = cameras.orbit_cameras(preset.test_views)[view]
-    images, seconds = [], []
+    images, seconds, cpu = [], [], []
     for seed in seeds:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         images.append(tracer.render(c2w, res, res, angle, seed=seed))
         seconds.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     again = tracer.render(c2w, res, res, angle, seed=seeds[0])
     a, b = (over_white(x) for x in images)
     mask = (images[0][..., 3] > 0) | (images[1][..., 3] > 0)
     return {"scene": scene_name, "spp": spp, "faces": tracer.faces, "build_seconds": round(build, 3),
-            "seconds_per_image": [round(s, 3) for s in seconds], "psnr": round(psnr(a, b), 2),
+            "seconds_per_image": [round(s, 3) for s in seconds], "cpu_seconds_per_image": [round(s, 3) for s in cpu],
+            "psnr": round(psnr(a, b), 2),
             "psnr_vs_converged": round(psnr(a, b) + 10 * math.log10(2), 2),
             "psnr_object": round(psnr(a, b, mask), 2), "object_fraction": round(float(mask.mean()), 3),
             "same_seed_identical": bool(np.array_equal(images[0], again))}
@@ -122,12 +125,17 @@ def main(argv=None) -> int:
         for spp in spps:
             sel = [r for r in rows if r["spp"] == spp]
             per_image = float(np.mean([min(r["seconds_per_image"]) for r in sel]))
+            cpu = float(np.mean([min(r["cpu_seconds_per_image"]) for r in sel]))
             summary[str(spp)] = {
                 "worst_scene_psnr": min(r["psnr"] for r in sel),
                 "mean_psnr": round(mean_db([r["psnr"] for r in sel]), 2),
                 "worst_scene_psnr_object": min(r["psnr_object"] for r in sel),
                 "seconds_per_image": round(per_image, 3),
+                "cpu_seconds_per_image": round(cpu, 3),
                 "projected_preset_minutes": round(images * per_image / 60, 1) if len(sel) == len(S.SCENES) else None,
+                # on this machine's cores with nothing else running: CPU time spread over every core
+                "projected_idle_minutes": (round(images * cpu / os.cpu_count() / 60, 1)
+                                           if len(sel) == len(S.SCENES) else None),
             }
         report["presets"][name] = {"preset": preset.record(), "images": images, "rows": rows, "summary": summary}
     report["wall_seconds"] = round(time.perf_counter() - t_all, 1)
@@ -144,18 +152,21 @@ def main(argv=None) -> int:
     for name, block in report["presets"].items():
         p = block["preset"]
         lines += [f"## `{name}` ({p['resolution']} px, {block['images']} images)", "",
-                  "| spp | " + " | ".join(args.scenes) + " | worst | s / image | whole preset (projected) |",
+                  "| spp | " + " | ".join(args.scenes) + " | worst | s / image (CPU s) | whole preset, projected "
+                  "(idle machine) |",
                   "|---:|" + "---:|" * len(args.scenes) + "---:|---:|---:|"]
         for spp, s in block["summary"].items():
             cells = [f"{r['psnr']:.1f} ({r['psnr_object']:.1f})" for r in block["rows"] if r["spp"] == int(spp)]
-            minutes = "-" if s["projected_preset_minutes"] is None else f"{s['projected_preset_minutes']:.0f} min"
+            minutes = ("-" if s["projected_preset_minutes"] is None else
+                       f"{s['projected_preset_minutes']:.0f} min ({s['projected_idle_minutes']:.0f} min)")
             lines.append(f"| {spp} | " + " | ".join(cells) + f" | {s['worst_scene_psnr']:.1f} | "
-                         f"{s['seconds_per_image']:.2f} | {minutes} |")
+                         f"{s['seconds_per_image']:.2f} ({s['cpu_seconds_per_image']:.2f}) | {minutes} |")
         lines.append("")
     lines.append(f"Machine: {os.cpu_count()} CPUs, load average {load_before[0]:.1f} before and "
                  f"{report['machine']['loadavg_after'][0]:.1f} after (above {os.cpu_count()}, other jobs shared "
                  f"the CPUs: times are upper bounds); whole run {report['wall_seconds']:.0f} s. Each time is the "
-                 "faster of the two renders; the projection multiplies it by the preset's images.")
+                 "faster of the two renders (CPU s: process CPU time, all threads); the projection multiplies it by "
+                 "the preset's images, the idle projection spreads the CPU time over every core.")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "pathtraced_noise.json").write_text(json.dumps(report, indent=1) + "\n")
     (args.out / "pathtraced_noise.md").write_text("\n".join(lines) + "\n")
