@@ -8,7 +8,8 @@
 #                              NE_JAX_HOST_DEVICES=1 from tests/conftest.py), then, as a second process, the
 #                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
 #                              the sharding tests on 4 forced host devices (pytest -m multidevice tests/devices),
-#                              then the notebooks in their fast mode (pytest -m notebook tests/notebooks);
+#                              the viewer in headless Chromium (pytest -m browser tests/view), then the
+#                              notebooks in their fast mode (pytest -m notebook tests/notebooks);
 #                              with explicit test paths (bash run.sh test tests/foo) only those run
 #   bash run.sh <cmd> [flags]  any other `ne-jax` sub-command
 # The virtual environment lives in .venv and is re-installed only when pyproject.toml changes.
@@ -81,6 +82,8 @@ case "$cmd" in
     JAX_ENABLE_X64=1 .venv/bin/python -m pytest tests/hard_cases -q
     echo "run.sh: multi-device step: 4 forced host devices, pytest -m multidevice tests/devices" >&2
     XLA_FLAGS="${XLA_FLAGS:-} --xla_force_host_platform_device_count=4" .venv/bin/python -m pytest tests/devices -m multidevice -q
+    echo "run.sh: browser step: pytest -m browser tests/view (headless Chromium; skipped without chromium and chromedriver)" >&2
+    .venv/bin/python -m pytest tests/view -m browser -q
     echo "run.sh: notebook step: pytest -m notebook tests/notebooks (each notebook in its fast mode)" >&2
     exec .venv/bin/python -m pytest tests/notebooks -m notebook -q ;;
   *)    exec .venv/bin/ne-jax "$cmd" "$@" ;;

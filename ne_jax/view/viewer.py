@@ -124,8 +124,12 @@ class Viewer:
     def stop(self) -> None:
         """Stop serving (the render threads end with it)."""
         self._stopped = True
-        for st in list(self._clients.values()):
+        states = list(self._clients.values())
+        for st in states:
             st.event.set()
+        for st in states:  # a render in flight finishes first (JAX must not be torn down under it)
+            if st.thread is not None and st.thread is not threading.current_thread():
+                st.thread.join(timeout=60.0)
         self.server.stop()
 
     def __enter__(self) -> Viewer:
