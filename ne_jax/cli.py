@@ -401,7 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--port", type=int, default=8080, help="port to serve on (default: 8080; 0: any free port)")
     vw.add_argument("--host", default="127.0.0.1",
                     help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
-    vw.add_argument("--max-side", type=int, default=256, help="longest side of a full-resolution frame (default: 256)")
+    vw.add_argument("--max-side", type=int, default=128, help="longest side of a full-resolution frame (default: 128)")
     vw.set_defaults(func=_cmd_view)
     return parser
 

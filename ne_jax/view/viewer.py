@@ -69,7 +69,7 @@ class Viewer:
     (the last image sent, ``[H, W, 3]`` uint8)."""
 
     def __init__(self, model: TrainedModel | str | Path, port: int = 8080, host: str = "127.0.0.1", *,
-                 max_side: int = 256, preview_factor: int = 4, settle_s: float = 0.25, verbose: bool = False):
+                 max_side: int = 128, preview_factor: int = 4, settle_s: float = 0.25, verbose: bool = False):
         import viser
 
         if not isinstance(model, TrainedModel):

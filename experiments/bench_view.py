@@ -1,0 +1,200 @@
+"""How fast the viewer (``ne-jax view``) answers, on this machine.
+
+1. **Frames per second** of a ``tiny`` model at 128 x 128 (and at the 32 x 32 preview the viewer shows
+   while the camera moves): the render of a browser camera to an 8-bit image
+   (:func:`ne_jax.view.frames.render_frame`), over an orbit of cameras, after one warm-up frame.
+2. **An edit on a 100,000-point model**: the tiny model's cloud resampled to 100,000 points (each
+   point copied with its features, normal and confidence, jittered by a tenth of the median spacing),
+   then the viewer's steps timed one by one: select a box region, move the selection, make the edited
+   model zero-shot (:func:`~ne_jax.edit.model.edit_model`: normals, IST, the carried tree) and render
+   it at 128 x 128.
+
+Writes ``experiments/results/bench_view.{json,md}``::
+
+    python experiments/bench_view.py --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
+    python experiments/bench_view.py                    # trains one first (tiny blocks, a few minutes)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "experiments" / "results"
+
+
+def _tiny_run(work: Path) -> Path:
+    from ne_jax.benchmark.generate import PRESETS, generate_scene
+    from ne_jax.train import RunConfig, train
+
+    run = work / "run"
+    if not (run / "config.json").is_file():
+        if not (work / "bench" / "blocks" / "scene.json").is_file():
+            generate_scene("blocks", PRESETS["tiny"], work / "bench", seed=0)
+        train(RunConfig.tiny(), work / "bench" / "blocks", run, progress=False, log=print)
+    return run
+
+
+def _orbit(model, n: int, size: int):
+    """``n`` OpenCV ``(wxyz, position)`` cameras on a circle around the cloud, looking at its centre."""
+    from ne_jax.view.edits import matrix_to_quat
+
+    xyz = np.asarray(model.scene.points.xyz)[np.asarray(model.scene.points.alive)]
+    centre = 0.5 * (xyz.min(0) + xyz.max(0))
+    radius = 2.2 * float(np.linalg.norm(xyz.max(0) - xyz.min(0)))
+    cams = []
+    for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
+        pos = centre + radius * np.array([np.cos(a), np.sin(a), 0.5])
+        fwd = (centre - pos) / np.linalg.norm(centre - pos)
+        right = np.cross(fwd, (0, 0, 1.0))
+        right /= np.linalg.norm(right)
+        cams.append((matrix_to_quat(np.stack([right, np.cross(fwd, right), fwd], 1)), pos))
+    return cams
+
+
+def _fps(model, size: int, frames: int) -> dict:
+    from ne_jax.view.frames import camera_from_viewer, render_frame
+
+    cams = [camera_from_viewer(w, p, np.deg2rad(40), size, size) for w, p in _orbit(model, frames, size)]
+    _, first = render_frame(model, cams[0])  # compiles
+    times = [render_frame(model, c)[1] for c in cams]
+    return {"size": size, "frames": frames, "first_frame_s": round(first, 3),
+            "median_frame_s": round(float(np.median(times)), 4), "fps": round(1.0 / float(np.median(times)), 2),
+            "min_frame_s": round(min(times), 4)}
+
+
+def _resampled(model, n: int, seed: int = 0):
+    """``model`` with its cloud resampled to ``n`` points (copies of alive points, jittered)."""
+    import jax.numpy as jnp
+
+    from ne_jax.geometry.points import PointState
+    from ne_jax.render.renderer import PointScene
+
+    pts = model.state.point_state(model.scene.points)
+    alive = np.flatnonzero(np.asarray(pts.alive))
+    rng = np.random.default_rng(seed)
+    pick = np.concatenate([alive, rng.choice(alive, n - alive.size)]) if n > alive.size else alive[:n]
+    xyz = np.asarray(pts.xyz)[pick]
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(xyz[: alive.size]).query(xyz[: alive.size], k=2)
+    jitter = 0.1 * float(np.median(d[:, 1]))
+    xyz = xyz + rng.normal(scale=jitter, size=xyz.shape) * (np.arange(n) >= alive.size)[:, None]
+    big = PointState(xyz=jnp.asarray(xyz, pts.xyz.dtype), alive=jnp.ones(n, bool),
+                     feature=jnp.asarray(np.asarray(pts.feature)[pick]),
+                     conf_logit=jnp.asarray(np.asarray(pts.conf_logit)[pick]),
+                     normal=jnp.asarray(np.asarray(pts.normal)[pick]), ist=jnp.asarray(np.asarray(pts.ist)[pick]))
+    state = model.state.with_points(big, np.zeros(n, bool)) if n >= pts.capacity else None
+    if state is None:
+        raise SystemExit(f"--points {n}: expected more points than the model's capacity {pts.capacity}")
+    t0 = time.perf_counter()
+    scene = PointScene.build(big, model.run.render)
+    return model.replace(state=state, scene=scene, run_dir=None), time.perf_counter() - t0
+
+
+def _edit_100k(model, n: int, size: int) -> dict:
+    from ne_jax.edit.model import edit_model
+    from ne_jax.view import edits as E
+    from ne_jax.view.frames import camera_from_viewer, render_frame
+
+    big, build_s = _resampled(model, n)
+    (wxyz, pos), = _orbit(big, 1, size)
+    cam = camera_from_viewer(wxyz, pos, np.deg2rad(40), size, size)
+    _, first = render_frame(big, cam)
+    _, unedited = render_frame(big, cam)
+    pts = big.state.point_state(big.scene.points)
+    edit = E.ViewEdit.identity(pts)
+    xyz = edit.xyz[edit.remaining]
+    lo, hi = xyz.min(0), xyz.max(0)
+    t0 = time.perf_counter()
+    region = E.Region.make("box", (lo + hi) / 2 + (0, 0, 0.25 * (hi - lo)[2]), (hi - lo) * (1.1, 1.1, 0.5))
+    sel = E.select_region(edit, region)
+    t1 = time.perf_counter()
+    turn = E.Transform.from_euler(E.selection_centre(edit, sel), (0.05, 0, 0), (0, 0, 30))
+    moved = E.move_points(edit, sel, turn)
+    t2 = time.perf_counter()
+    edited, report = edit_model(big, moved.rows(), label="bench_view")
+    t3 = time.perf_counter()
+    _, render_first = render_frame(edited, cam)
+    _, render_again = render_frame(edited, cam)
+    return {"points": n, "selected": int(sel.size), "tree_build_s": round(build_s, 2),
+            "select_s": round(t1 - t0, 4), "move_s": round(t2 - t1, 4), "edit_model_s": round(t3 - t2, 2),
+            "edit_report": {k: report[k] for k in ("moved", "deleted", "good", "filled", "seconds") if k in report},
+            "render_edited_first_s": round(render_first, 2), "render_edited_s": round(render_again, 3),
+            "render_unedited_first_s": round(first, 2), "render_unedited_s": round(unedited, 3), "size": size,
+            "select_move_rerender_s": round((t3 - t0) + render_first, 2)}
+
+
+def main(argv=None) -> None:
+    sys.path.insert(0, str(ROOT))
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", default=None, help="a tiny model's run directory (default: train one in --work)")
+    ap.add_argument("--work", default="outputs/bench_view", help="where a model is trained when --run is not given")
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--frames", type=int, default=12)
+    ap.add_argument("--points", type=int, default=100_000)
+    args = ap.parse_args(argv)
+
+    import jax
+
+    from ne_jax import provenance
+    from ne_jax.atomic import atomic_write_json, atomic_write_text
+    from ne_jax.config_json import config_key
+    from ne_jax.train.model import load_trained
+
+    run = Path(args.run) if args.run else _tiny_run(Path(args.work))
+    model = load_trained(run)
+    t_start = time.perf_counter()
+    load = os.getloadavg()[0]
+    fps = [_fps(model, args.size, args.frames), _fps(model, max(1, args.size // 4), args.frames)]
+    for row in fps:
+        print(row, flush=True)
+    edit = _edit_100k(model, args.points, args.size)
+    print(edit, flush=True)
+    command = "python experiments/bench_view.py" + (" --run RUN" if args.run else "") + \
+        f" --size {args.size} --frames {args.frames} --points {args.points}"
+    modified = provenance.modified()
+    report = {"what": "ne-jax view: frames/s of a tiny model and a select+move+re-render on a resampled cloud",
+              "commit": provenance.commit(), "worktree_modified": modified, "command": command,
+              "model": {"run_config": model.run.name, "config_key": config_key(model.run),
+                        "points": int(np.asarray(model.scene.points.alive).sum())},
+              "fps": fps, "edit": edit, "seconds": round(time.perf_counter() - t_start, 1),
+              "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                          "device": jax.devices()[0].platform, "jax": jax.__version__,
+                          "load_before": round(load, 2)},
+              "shared": "other jobs ran on the same cores (load_before: 1-minute load average at the start)"}
+    RESULTS.mkdir(exist_ok=True)
+    atomic_write_json(RESULTS / "bench_view.json", report)
+    full, prev = fps
+    lines = [f"`ne-jax view` on {os.cpu_count()} CPU cores ({jax.devices()[0].platform}, JAX {jax.__version__}, "
+             f"load {load:.1f} at the start: other jobs shared the cores). Model `{model.run.name}` "
+             f"(config key {report['model']['config_key']}, {report['model']['points']} points). "
+             f"Commit {report['commit'][:12]}{' (work tree modified)' if modified else ''}; re-run: `{command}`.", "",
+             "| frame | median s | frames/s | first frame (compile) s |", "|---|---:|---:|---:|",
+             f"| {full['size']} x {full['size']} (full) | {full['median_frame_s']} | {full['fps']} | "
+             f"{full['first_frame_s']} |",
+             f"| {prev['size']} x {prev['size']} (preview) | {prev['median_frame_s']} | {prev['fps']} | "
+             f"{prev['first_frame_s']} |", "",
+             f"Edit of the cloud resampled to {edit['points']} points ({edit['selected']} selected by a box, moved "
+             "and turned 30 degrees):", "",
+             "| step | s |", "|---|---:|",
+             f"| select (box region) | {edit['select_s']} |", f"| move | {edit['move_s']} |",
+             f"| edited model (normals, IST, carried tree) | {edit['edit_model_s']} |",
+             f"| first render of the edit at {edit['size']} x {edit['size']} (compiles) | "
+             f"{edit['render_edited_first_s']} |",
+             f"| **select + move + re-render** | **{edit['select_move_rerender_s']}** |",
+             f"| next render of the edit | {edit['render_edited_s']} |",
+             f"| render of the unedited {edit['points']}-point model | {edit['render_unedited_s']} |", ""]
+    atomic_write_text(RESULTS / "bench_view.md", "\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
