@@ -13,6 +13,7 @@ Sub-commands:
   finetune        fine-tune an edited model on the edited scene's training views
   morph           morph one trained run into another: both models rendered through intermediate
                   clouds, blended by the morph ratio, to PNG frames, a video and smoothness figures
+  view            look at a trained run in the browser and edit it there (a viser web page; the `view` extra)
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""A tiny trained model for the viewer's tests, and the ``browser`` marker: tests that drive a real
-headless Chromium run only when asked for (``pytest -m browser``; run.sh's browser step)."""
+"""A tiny trained model for the viewer's tests (the ``browser`` tests, which drive a real headless
+Chromium, run only when asked for: ``pytest -m browser``, run.sh's browser step)."""
 
 from __future__ import annotations
 
@@ -9,20 +9,6 @@ from ne_jax.benchmark.generate import generate_scene
 from ne_jax.train.loop import train
 
 from tests.mini_presets import mini_benchmark, short_run
-
-
-def pytest_configure(config):
-    config.addinivalue_line("markers", "browser: drives a headless Chromium (run with -m browser; skipped without "
-                                       "chromium and chromedriver)")
-
-
-def pytest_collection_modifyitems(config, items):
-    if "browser" in (config.getoption("-m") or ""):
-        return
-    skip = pytest.mark.skip(reason="a browser test: run with -m browser")
-    for item in items:
-        if "browser" in item.keywords:
-            item.add_marker(skip)
 
 
 @pytest.fixture(scope="session")
