@@ -317,7 +317,7 @@ def knn_study(sz: Sizes) -> dict:
 
     # (sample, node) pairs of camera rays: the tree topology does not depend on the candidate sets,
     # so one traversal serves every candidate size (same heap indices, same samples).
-    base = KDTreeConfig.default()
+    base = KDTreeConfig()
     tree0 = build_tree(xyz, alive, base)
     seg, _ = intersect_checked(tree0, orbit_rays(sz.knn_res, 4), base)
     r_idx, m_idx = np.nonzero(np.asarray(seg.valid))
@@ -410,12 +410,12 @@ def make_model(sz: Sizes, path: str) -> None:
     (``init_color_model``, key 1) as flat leaves."""
     import jax
 
-    from ne_jax.render.renderer import RenderConfig
     from ne_jax.render.shading import init_color_model
+    from ne_jax.train.run import get_run_preset
 
     xyz, normal = glossy_points(sz.render_points)
     feat = (0.5 * np.random.default_rng(1).normal(size=(xyz.shape[0], 32))).astype(np.float32)
-    cfg = getattr(RenderConfig, sz.render_preset)()
+    cfg = get_run_preset(sz.render_preset).render
     init = jax.jit(init_color_model, static_argnums=0)  # compiling is faster than flax's eager init
     leaves = jax.tree_util.tree_leaves(init(cfg.shading, jax.random.key(1)))
     np.savez(path, xyz=xyz, normal=normal, feature=feat, **{f"param_{i}": np.asarray(x) for i, x in enumerate(leaves)})
@@ -428,7 +428,7 @@ def render_worker(dtype_name: str, sz: Sizes, model_npz: str, out_npz: str) -> N
     import jax.numpy as jnp
 
     from ne_jax.geometry.points import PointState
-    from ne_jax.render.renderer import PointScene, RenderConfig, render_chunked
+    from ne_jax.render.renderer import PointScene, render_chunked
     from ne_jax.render.shading import init_color_model
 
     dtype = np.dtype(dtype_name)
@@ -439,7 +439,9 @@ def render_worker(dtype_name: str, sz: Sizes, model_npz: str, out_npz: str) -> N
     pts = PointState.from_numpy(model["xyz"].astype(dtype), feature=model["feature"].astype(dtype),
                                 normal=model["normal"].astype(dtype), dtype=dtype)
     pts = pts.replace(conf_logit=jnp.full(pts.conf_logit.shape, 2.0, dtype))
-    cfg = getattr(RenderConfig, sz.render_preset)()
+    from ne_jax.train.run import get_run_preset
+
+    cfg = get_run_preset(sz.render_preset).render
     t0 = time.perf_counter()
     scene = PointScene.build(pts, cfg)
     build_s = time.perf_counter() - t0

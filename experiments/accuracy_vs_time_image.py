@@ -13,7 +13,7 @@ overflow it before any growth), the share of points kept (a seeded random
 subset of the alive points, the others deleted, rebuilt), the integration rule (every deterministic
 quadrature rule, and ``integration="samples"``: shade every sample, no integration), the chunk size
 (time only: it changes no pixel), joint settings (everything cheaper, everything richer, s x1.5 with
-the spline rule), and the library's ``tiny`` and ``default`` render presets' tree and quadrature
+the spline rule), and the ``tiny`` and ``default`` run presets' tree and quadrature
 where they differ from the own.
 
 Each setting is scored on two targets: the trained model on its scene's test split (``original``),
@@ -189,7 +189,6 @@ def _with_levels(cfg, levels: int):
 def settings_for(own, sz: ImageSizes) -> list[Setting]:
     """The settings of one target, from its own render config ``own`` (a RenderConfig)."""
     from ne_jax.render.quadrature import DETERMINISTIC_RULES
-    from ne_jax.render.renderer import RenderConfig
 
     q, t = own.quadrature, own.tree
     spl = tuple(q.samples_per_level)
@@ -234,7 +233,9 @@ def settings_for(own, sz: ImageSizes) -> list[Setting]:
         mid_q = dataclasses.replace(q, samples_per_level=_scaled_samples(spl, 1.5), rule="spline")
         out.append(Setting("joint", "s x1.5, spline", "s1.5+spline", own.replace(quadrature=mid_q)))
     for name in sz.presets:
-        p = getattr(RenderConfig, name)()
+        from ne_jax.train.run import get_run_preset
+
+        p = get_run_preset(name).render
         cfg = own.replace(tree=p.tree, quadrature=p.quadrature, chunk=p.chunk)
         if cfg != own:
             out.append(Setting("preset", f"preset {name}", name, cfg))

@@ -118,7 +118,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
             out.append(Candidate(k_label(k), "k", with_k(k)))
     if candidate_set == "short":
         out.append(Candidate("steps x0.5", "steps", run.with_schedule(steps_per_epoch=run.steps_per_epoch // 2)))
-        paper_tree, paper_q = KDTreeConfig.default(), QuadratureConfig()
+        paper_tree, paper_q = KDTreeConfig(), QuadratureConfig()
         if (t, q) != (paper_tree, paper_q):
             paper = run.replace(render=run.render.replace(tree=paper_tree, quadrature=paper_q))
             levels = paper_tree.num_render_levels

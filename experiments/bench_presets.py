@@ -58,7 +58,7 @@ def settings(quick: bool) -> list[tuple[str, object]]:
     out = [(name, make()) for name, make in PRESETS.items()]
     d = RunConfig.default()
     one_pass = d.render.tree.replace(first_pass_frontier=None)
-    paper_sampling = RenderConfig.default()  # the paper's per-sample settings on the default preset's tree
+    paper_sampling = RenderConfig()  # the paper's per-sample settings on the default preset's tree
     out[2:2] = [("default, one pass", d.replace(render=d.render.replace(tree=one_pass))),
                 ("default, paper sampling", d.replace(render=d.render.replace(tree=paper_sampling.tree,
                                                                               quadrature=paper_sampling.quadrature)))]

@@ -30,6 +30,7 @@ from ne_jax.data.rays import Camera
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig, render_image
 from ne_jax.render.shading import init_color_model, num_params
+from ne_jax.train.run import get_run_preset
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_render.json"
 RES = 100
@@ -85,7 +86,7 @@ def main(argv=None) -> None:
     rows = []
     clouds = {}
     for preset, n in n_points.items():
-        cfg = getattr(RenderConfig, preset)()
+        cfg = get_run_preset(preset).render
         if n not in clouds:
             clouds[n] = make_points(n)
         t0 = time.perf_counter()

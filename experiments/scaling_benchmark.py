@@ -41,7 +41,9 @@ def worker(points: int, batch: int, res: int, repeats: int) -> dict:
     from ne_jax.data.cameras import orbit_cameras
     from ne_jax.data.rays import Camera, camera_rays
     from ne_jax.devices import default_mesh
+    from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.geometry.points import PointState
+    from ne_jax.render.quadrature import QuadratureConfig
     from ne_jax.render.renderer import (
         PointScene,
         RenderConfig,
@@ -55,7 +57,8 @@ def worker(points: int, batch: int, res: int, repeats: int) -> dict:
     x = rng.normal(size=(points, 3))
     x = 0.9 * x / np.linalg.norm(x, axis=1, keepdims=True) * (1 + 0.03 * rng.normal(size=(points, 1)))
     normal = x / np.linalg.norm(x, axis=1, keepdims=True)
-    cfg = RenderConfig.tiny(chunk=4096)
+    tree = KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=16, max_segments=16)
+    cfg = RenderConfig(tree=tree, quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=4096)
     pts = PointState.from_numpy(x, points, cfg.shading.feature_dim, normal=normal, key=jax.random.key(0))
     scene = PointScene.build(pts, cfg)
     tcfg = TrainConfig(total_steps=100)

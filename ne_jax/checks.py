@@ -8,7 +8,7 @@ first failing check in program order -- the first stage that saw a NaN or Inf --
 
 Usage::
 
-    cfg = RenderConfig.tiny().replace(checks=True)      # or RenderConfig(checks=True)
+    cfg = RenderConfig(checks=True)
     render_chunked(cfg, params, scene, rays, bg)         # raises NonFiniteError on a NaN / Inf
     make_train_step(train_cfg, cfg)(state, scene, batch) # the same for the training step
 

@@ -33,10 +33,24 @@ GEN_SCENES = mini_benchmark(resolution=16, train_views=3, test_views=2, detail=0
 """The scenes the generation tests make and check (16 px, 3 training and 2 test views)."""
 
 
+def tiny_tree(**changes) -> KDTreeConfig:
+    """Small tree capacities for tests and toy scenes (16 candidates, K = 8, 2 rendering levels, 16
+    frontier and segment slots), with ``changes``."""
+    return KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=16,
+                        max_segments=16).replace(**changes)
+
+
+def tiny_render(**changes) -> RenderConfig:
+    """A small render config for tests and toy scenes: :func:`tiny_tree`, 4, 6, 8 samples per level,
+    chunks of 1024 rays, with ``changes``."""
+    return RenderConfig(tree=tiny_tree(), quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)),
+                        chunk=1024).replace(**changes)
+
+
 def mini_render(**changes) -> RenderConfig:
-    """:meth:`RenderConfig.tiny` with 24 segments per ray and 3, 4, 5 samples per level, and ``changes``."""
-    return RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24),
-                             quadrature=QuadratureConfig(samples_per_level=(3, 4, 5))).replace(**changes)
+    """:func:`tiny_render` with 24 segments per ray and 3, 4, 5 samples per level, and ``changes``."""
+    return tiny_render(tree=tiny_tree(max_segments=24),
+                       quadrature=QuadratureConfig(samples_per_level=(3, 4, 5))).replace(**changes)
 
 
 def mini_init(*, resolution: int = 48, num_points: int = 1500) -> InitConfig:

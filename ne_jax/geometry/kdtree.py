@@ -191,24 +191,6 @@ class KDTreeConfig:
             return self.replace(retry_share=min(1.0, 2 * self.retry_share))
         return self.replace(frontier_capacity=2 * self.frontier_capacity)
 
-    @classmethod
-    def tiny(cls, **changes) -> KDTreeConfig:
-        """Small capacities for tests and toy scenes."""
-        base = cls(candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=16, max_segments=16)
-        return dataclasses.replace(base, **changes)
-
-    @classmethod
-    def default(cls, **changes) -> KDTreeConfig:
-        """The paper's settings with traversal capacities sized for surface-like clouds."""
-        return dataclasses.replace(cls(), **changes)
-
-    @classmethod
-    def paper(cls, **changes) -> KDTreeConfig:
-        """The paper's appendix: 21 levels (fixed), 4 rendering levels + growing, K = 32, 96 candidates;
-        64 segment slots a ray (at 21 levels a ray finds more, smaller voxels: with 32, 1.9% of a
-        training batch's rays on the benchmark's glossy cloud filled every slot; README, part 3)."""
-        return dataclasses.replace(cls(depth=21, max_segments=64), **changes)
-
 
 @struct.dataclass
 class KDTree:

@@ -139,31 +139,6 @@ class RenderConfig:
         effects = dataclasses.replace(self.shading.effects, **changes)
         return self.replace(shading=dataclasses.replace(self.shading, effects=effects))
 
-    # These presets are render-only starting points (tests, benchmarks, untrained scenes). A trained
-    # model renders with the config it was trained with (``RunConfig.render``, saved with the run):
-    # the training presets ``RunConfig.tiny/default/paper`` differ from these, and a model rendered
-    # with one of these presets instead lost 0.7 to 3.4 dB (docs/studies/accuracy_vs_time.md, part 2).
-
-    @classmethod
-    def tiny(cls, **changes) -> RenderConfig:
-        """Tests and toy scenes: 2 rendering levels, K = 8, 16 candidates, few samples."""
-        base = cls(
-            tree=KDTreeConfig.tiny(),
-            quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)),
-            chunk=1024,
-        )
-        return dataclasses.replace(base, **changes)
-
-    @classmethod
-    def default(cls, **changes) -> RenderConfig:
-        """The paper's per-sample settings (K = 32, s = 8, 11, 16, 22) with a free tree depth."""
-        return dataclasses.replace(cls(), **changes)
-
-    @classmethod
-    def paper(cls, **changes) -> RenderConfig:
-        """The paper's appendix, including the fixed 21-level tree."""
-        return dataclasses.replace(cls(tree=KDTreeConfig.paper()), **changes)
-
 
 @struct.dataclass
 class PointScene:

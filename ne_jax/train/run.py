@@ -123,8 +123,9 @@ class RunConfig:
         """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
         of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
         over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3)."""
-        render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=32, frontier_capacity=32, knn_k=16),
-                                   quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)))
+        render = RenderConfig(tree=KDTreeConfig(candidate_min=16, knn_k=16, num_render_levels=2, frontier_capacity=32,
+                                                max_segments=32),
+                              quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)), chunk=1024)
         base = cls(name="tiny", render=render, sampler=SamplerConfig(batch_size=1024),
                    train=TrainConfig(lr=5e-3), points=PointOptConfig(grow_rays=4096),
                    epochs=6, steps_per_epoch=125, point_rounds=(2, 4))
@@ -134,13 +135,13 @@ class RunConfig:
     def default(cls, **changes) -> RunConfig:
         """The benchmark's ``default`` preset (200 px scenes), sized to train in about an hour on one
         CPU core: K = 16 of 32 candidates, 2 rendering levels, s = 4, 6 (the paper's per-sample
-        settings, :meth:`RenderConfig.default`, cost about 4x the time per step; see
+        settings, ``RenderConfig()``, cost about 4x the time per step; see
         docs/studies/accuracy_vs_time.md). The tree is walked in two passes, 16 nodes wide and then
         64 for at most a quarter of the rays: on the benchmark's glossy scene this trains the same model bit for
         bit as one 64-wide pass, in 0.885x the time."""
-        render = RenderConfig.default(tree=KDTreeConfig.default(knn_k=16, candidate_min=32, num_render_levels=2,
-                                                                first_pass_frontier=16, retry_share=0.25),
-                                      quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)))
+        render = RenderConfig(tree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2,
+                                                first_pass_frontier=16, retry_share=0.25),
+                              quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)))
         base = cls(name="default", render=render,
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
                    sampler=SamplerConfig(batch_size=2048), train=TrainConfig(lr=5e-3),
@@ -150,8 +151,10 @@ class RunConfig:
     @classmethod
     def paper(cls, **changes) -> RunConfig:
         """The paper's settings: 4096 rays per batch, the fixed 21-level tree, lr 2e-3, rounds after
-        epochs 4-12 (a GPU-sized run)."""
-        base = cls(name="paper", render=RenderConfig.paper(quadrature=QuadratureConfig()),
+        epochs 4-12 (a GPU-sized run). 64 segment slots a ray: at 21 levels a ray finds more, smaller
+        voxels (with 32, 1.9% of a training batch's rays on the benchmark's glossy cloud filled every
+        slot)."""
+        base = cls(name="paper", render=RenderConfig(tree=KDTreeConfig(depth=21, max_segments=64)),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
                    sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),
                    epochs=16, steps_per_epoch=5000, point_rounds=(4, 12))

@@ -19,11 +19,12 @@ from ne_jax.edit.differentiable import (
     recover_parameter,
 )
 from ne_jax.edit.ist import ISTConfig
-from ne_jax.geometry import KDTreeConfig, PointState
-from ne_jax.render.renderer import RenderConfig
+from ne_jax.geometry import PointState
 from ne_jax.render.shading import init_color_model
 
-CFG = RenderConfig.tiny(tree=KDTreeConfig.tiny(frontier_capacity=32, max_segments=32),
+from tests.mini_presets import tiny_render, tiny_tree
+
+CFG = tiny_render(tree=tiny_tree(frontier_capacity=32, max_segments=32),
                         segments_per_ray=None).with_effects(ist=True)
 N, CAP, R = 700, 768, 256
 TRUE = 0.6  # radians
@@ -149,7 +150,7 @@ def test_boxes_follow_points_exactly_at_the_reference(world):
 
 def test_render_config_must_declare_ist():
     with pytest.raises(ValueError, match="IST effect"):
-        make_edit_loss(RenderConfig.tiny(), DEFORM)
+        make_edit_loss(tiny_render(), DEFORM)
 
 
 @pytest.mark.parametrize("deleted", [False, True])

@@ -14,14 +14,15 @@ from ne_jax.data.rays import Camera
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import rigid_motion, rigid_scene
 from ne_jax.edit.fidelity import EXACT_DB, equivariance, exact_rigid_points, motion_parts, moved_camera, psnr_between
-from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import QuadratureConfig
-from ne_jax.render.renderer import PointScene, RenderConfig
+from ne_jax.render.renderer import PointScene
 from ne_jax.render.shading import init_color_model
 
-CFG = RenderConfig.tiny(tree=KDTreeConfig.tiny(frontier_capacity=64, max_segments=32),
+from tests.mini_presets import tiny_render, tiny_tree
+
+CFG = tiny_render(tree=tiny_tree(frontier_capacity=64, max_segments=32),
                         quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=512)
 NEAR, FAR = 0.5, 6.0
 

@@ -16,14 +16,14 @@ from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.targets import EditError
 from ne_jax.eval import evaluate_model
-from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.pointcloud.optimise import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig
-from ne_jax.render.renderer import RenderConfig
 from ne_jax.train import SamplerConfig, TrainConfig
 from ne_jax.train.loop import train
 from ne_jax.train.model import load_trained
 from ne_jax.train.run import InitConfig, RunConfig
+
+from tests.mini_presets import tiny_render, tiny_tree
 
 MINI = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
                        detail=0.4, surface_samples=2000)
@@ -38,7 +38,7 @@ def scene_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def trained(scene_dir, tmp_path_factory):
-    render = RenderConfig.tiny(tree=KDTreeConfig.tiny(max_segments=24),
+    render = tiny_render(tree=tiny_tree(max_segments=24),
                                quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
     init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
     run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),

@@ -35,13 +35,13 @@ from ne_jax.eval import (
 )
 from ne_jax.eval import views as views_module
 from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import PointScene, RenderConfig
+from ne_jax.render.renderer import PointScene
 from ne_jax.render.shading import init_color_model
 
-from tests.mini_presets import mini_benchmark
+from tests.mini_presets import mini_benchmark, tiny_render
 
 MICRO = mini_benchmark(name="micro", resolution=16, train_views=1, test_views=2, detail=0.3, surface_samples=400)
-RCFG = RenderConfig.tiny(chunk=256)  # one 16x16 image per compiled call
+RCFG = tiny_render(chunk=256)  # one 16x16 image per compiled call
 
 
 @pytest.fixture(scope="module")

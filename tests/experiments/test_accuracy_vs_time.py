@@ -222,9 +222,9 @@ def test_evenly_spaced_views():
 
 def test_image_frontier_settings_change_only_the_frontier():
     image = _load("accuracy_vs_time_image")
-    from ne_jax.render.renderer import RenderConfig
+    from tests.mini_presets import tiny_render
 
-    own = RenderConfig.tiny()
+    own = tiny_render()
     rows = [s for s in image.settings_for(own, image.ImageSizes.full()) if s.knob == "frontier"]
     assert [s.value for s in rows] == [4, 8]  # a quarter and a half of the tiny tree's 16
     for s in rows:
@@ -388,7 +388,7 @@ def test_short_candidates_for_hour_long_presets():
     again = tr.candidates_for(single, candidate_set="short")
     assert [c.knob for c in again][-2:] == ["frontier", "two-pass"]
     assert again[-1].run.render.tree == own.render.tree and again[-1].run.replace(render=single.render) == single
-    assert paper.render.tree == KDTreeConfig.default() and paper.render.quadrature == QuadratureConfig()
+    assert paper.render.tree == KDTreeConfig() and paper.render.quadrature == QuadratureConfig()
     assert paper.replace(render=own.render) == own  # only the per-sample settings change
     assert paper_short.total_steps == own.total_steps // 4
     # a preset already at the paper's settings has no paper candidates

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 from ne_jax.edit.deformations import bend_points, cut_points, rigid_motion
-from ne_jax.geometry import KDTreeConfig, build_tree, intersect
+from ne_jax.geometry import build_tree, intersect
 from ne_jax.geometry.carry import carry_tree
+
+from tests.mini_presets import tiny_tree
 
 from .clouds import hard_rays, make_rays, sphere
 
-CFG = KDTreeConfig.tiny(frontier_capacity=64, max_segments=32)
+CFG = tiny_tree(frontier_capacity=64, max_segments=32)
 
 
 @pytest.fixture(scope="module")

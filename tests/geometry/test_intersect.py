@@ -10,10 +10,12 @@ import pytest
 from ne_jax.geometry import KDTreeConfig, build_tree, intersect, intersect_checked, slab_intersect
 from ne_jax.numerics import safe_reciprocal, tiny
 
+from tests.mini_presets import tiny_tree
+
 from .clouds import CLOUDS, hard_rays, make_rays, padded, sphere
 from .reference import minimal_voxels, slab64
 
-CFG = KDTreeConfig.tiny()
+CFG = tiny_tree()
 
 
 def compare(tree, rays, seg, cfg, include_grow=False, max_ambiguous=0.05):
@@ -228,7 +230,7 @@ def test_grad_wrt_origin_finite():
         assert float(jnp.abs(g).sum()) > 0 or name == "one_point"
 
 
-@pytest.mark.parametrize("cfg", [KDTreeConfig.tiny(depth=10), KDTreeConfig.tiny(depth=10, first_pass_frontier=4)])
+@pytest.mark.parametrize("cfg", [tiny_tree(depth=10), tiny_tree(depth=10, first_pass_frontier=4)])
 def test_no_recompilation_for_same_capacities(cfg):
     xyz = sphere(1000, seed=7)
     t1 = build_tree(xyz, np.arange(1000) < 900, cfg)

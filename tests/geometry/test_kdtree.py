@@ -6,10 +6,12 @@ import pytest
 
 from ne_jax.geometry import KDTreeConfig, build_tree, tree_depth
 
+from tests.mini_presets import tiny_tree
+
 from .clouds import CLOUDS, sphere
 from .reference import build_tree_reference, check_candidates, check_tree
 
-CFG = KDTreeConfig.tiny()
+CFG = tiny_tree()
 
 
 @pytest.mark.parametrize("name", sorted(CLOUDS))
@@ -58,7 +60,7 @@ def test_far_outlier_boxes_are_invalid():
 
 
 def test_fixed_depth_gives_fixed_shapes():
-    cfg = KDTreeConfig.tiny(depth=9)
+    cfg = tiny_tree(depth=9)
     xyz = sphere(600, 1)
     a = build_tree(xyz, np.arange(600) < 300, cfg)  # same capacity, different alive counts
     b = build_tree(xyz, np.arange(600) >= 100, cfg)
@@ -109,14 +111,14 @@ def test_config_errors(kwargs, match):
         KDTreeConfig(**kwargs)
 
 
-def test_config_is_hashable_and_has_presets():
-    assert hash(KDTreeConfig.paper()) == hash(KDTreeConfig(depth=21, max_segments=64))
+def test_config_is_hashable_with_the_papers_defaults():
+    assert hash(KDTreeConfig(depth=21, max_segments=64)) == hash(KDTreeConfig(depth=21, max_segments=64))
     assert KDTreeConfig().num_candidates == 96 and KDTreeConfig().knn_k == 32
-    assert KDTreeConfig.tiny().num_candidates == 16
+    assert tiny_tree().num_candidates == 16
 
 
 @pytest.mark.parametrize(
-    "cfg", [KDTreeConfig.tiny(), KDTreeConfig(), KDTreeConfig(depth=13), KDTreeConfig.tiny(depth=15)],
+    "cfg", [tiny_tree(), KDTreeConfig(), KDTreeConfig(depth=13), tiny_tree(depth=15)],
     ids=["tiny", "default", "depth13", "tiny_depth15"],
 )
 def test_candidates_exact_on_every_node(cfg):
@@ -165,13 +167,13 @@ _SAME_CLOUDS = {
         lambda rng: np.repeat(
             np.stack(np.meshgrid(*[np.arange(9, dtype=np.float32)] * 3, indexing="ij"), -1).reshape(-1, 3), 2, 0
         ),
-        KDTreeConfig.tiny(),
+        tiny_tree(),
     ),
     "clusters_fixed_depth": (
         lambda rng: np.concatenate([sphere(2000, seed=5), 0.01 * rng.normal(size=(500, 3)).astype(np.float32)]),
         KDTreeConfig(depth=16),
     ),
-    "tiny_fixed_depth": (lambda rng: rng.normal(size=(300, 3)).astype(np.float32), KDTreeConfig.tiny(depth=12)),
+    "tiny_fixed_depth": (lambda rng: rng.normal(size=(300, 3)).astype(np.float32), tiny_tree(depth=12)),
 }
 
 

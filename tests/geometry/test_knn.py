@@ -15,10 +15,12 @@ from hypothesis import strategies as st
 from ne_jax.data.rays import Rays
 from ne_jax.geometry import KDTreeConfig, PointState, build_tree, intersect, knn_interpolate, knn_neighbors, knn_weights
 
+from tests.mini_presets import tiny_tree
+
 from .clouds import CLOUDS, hard_rays, make_rays, padded, sphere
 from .reference import interpolate_reference, knn_reference
 
-CFG = KDTreeConfig.tiny(depth=10, frontier_capacity=64, max_segments=32)
+CFG = tiny_tree(depth=10, frontier_capacity=64, max_segments=32)
 
 
 def state_for(xyz, alive, seed=0, feature_dim=4):

@@ -5,16 +5,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.geometry.kdtree import KDTreeConfig, build_tree
+from ne_jax.geometry.kdtree import build_tree
 from ne_jax.geometry.knn import knn_integrate, knn_interpolate
 from ne_jax.geometry.points import PointState
+
+from tests.mini_presets import tiny_tree
 
 from .clouds import CLOUDS
 
 
 def _setup(name, seed=0, b=40, s=6):
     xyz, alive = CLOUDS[name]
-    cfg = KDTreeConfig.tiny()
+    cfg = tiny_tree()
     rng = np.random.default_rng(seed)
     state = PointState.from_numpy(np.where(alive[:, None], xyz, 0.0).astype(np.float32), feature_dim=5)
     state = state.replace(alive=jnp.asarray(alive),

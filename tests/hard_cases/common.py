@@ -15,7 +15,9 @@ import numpy as np
 from hypothesis import HealthCheck, settings
 
 from ne_jax.data.rays import Rays
-from ne_jax.geometry import KDTreeConfig, PointState
+from ne_jax.geometry import PointState
+
+from tests.mini_presets import tiny_tree
 
 X64 = bool(jax.config.jax_enable_x64)
 """Whether this process runs with float64 enabled (``JAX_ENABLE_X64=1``)."""
@@ -59,7 +61,7 @@ HYP = settings(deadline=None, derandomize=True, print_blob=True,
 
 # One capacity / depth / config for every cloud of the suite: each jitted function compiles once.
 CAPACITY = 256
-CFG = KDTreeConfig.tiny(depth=8, frontier_capacity=64, max_segments=48)
+CFG = tiny_tree(depth=8, frontier_capacity=64, max_segments=48)
 
 CLOUD_KINDS = ("uniform", "sphere", "coplanar", "collinear", "duplicates", "clusters", "grid")
 

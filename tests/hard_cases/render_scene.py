@@ -18,11 +18,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ne_jax.data.rays import Rays
-from ne_jax.geometry import KDTreeConfig, PointState
-from ne_jax.render.renderer import PointScene, RenderConfig, render_rays
+from ne_jax.geometry import PointState
+from ne_jax.render.renderer import PointScene, render_rays
 from ne_jax.render.shading import init_color_model
 
-CFG = RenderConfig.tiny(tree=KDTreeConfig.tiny(depth=8, frontier_capacity=64, max_segments=48),
+from tests.mini_presets import tiny_render, tiny_tree
+
+CFG = tiny_render(tree=tiny_tree(depth=8, frontier_capacity=64, max_segments=48),
                         segments_per_ray=None)
 CAPACITY, N_POINTS, N_RAYS = 256, 200, 64
 

@@ -30,13 +30,13 @@ from ne_jax.morph import (
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render import renderer
 from ne_jax.render.quadrature import at_test_time
-from ne_jax.render.renderer import PointScene, RenderConfig, render_image
+from ne_jax.render.renderer import PointScene, render_image
 from ne_jax.render.shading import Effects, init_color_model, shade
 from ne_jax.train.model import TrainedModel, save_trained
 from ne_jax.train.run import RunConfig
 from ne_jax.train.state import init_train_state
 
-from tests.mini_presets import mini_benchmark
+from tests.mini_presets import mini_benchmark, tiny_render
 
 N = 400
 BG = jnp.ones(3)
@@ -55,7 +55,7 @@ def _cube(n, seed):
 
 
 def _model(xyz, seed, capacity=None, effects=Effects()) -> TrainedModel:
-    render = RenderConfig.tiny()
+    render = tiny_render()
     render = render.replace(shading=dataclasses.replace(render.shading, effects=effects))
     run = RunConfig.tiny(render=render)
     normals = estimate_normals(NormalConfig(orient="none"), xyz)
@@ -95,7 +95,7 @@ def test_ratio_0_on_a_cloud_renders_a_and_ratio_1_on_b_cloud_renders_b(models):
 
 def test_blended_shading_mixes_both_colour_models_by_the_ratio():
     fa, fb = Effects(), Effects(specular=False)
-    ref = RenderConfig.tiny().shading
+    ref = tiny_render().shading
     ca, cb = (dataclasses.replace(ref, effects=dataclasses.replace(e, ist=True)) for e in (fa, fb))
     blend = BlendedShading(ca, cb)
     pa, pb = init_color_model(ca, jax.random.PRNGKey(0)), init_color_model(cb, jax.random.PRNGKey(1))

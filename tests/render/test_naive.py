@@ -19,6 +19,8 @@ from ne_jax.render.naive import DEFAULT_SPLAT_RADIUS, naive_plot_image, splat_of
 from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import background_color, init_color_model, shade
 
+from tests.mini_presets import tiny_render
+
 W, H = 16, 12
 C = 75  # one capacity for most tests, so they share compilations
 NEAR, FAR = 1.0, 4.0
@@ -26,7 +28,7 @@ BG = np.array([0.2, 0.4, 0.9], np.float32)
 
 
 def _cfg(**effects) -> RenderConfig:
-    return RenderConfig.tiny().with_effects(**effects)
+    return tiny_render().with_effects(**effects)
 
 
 def _camera(c2w=None) -> Camera:
@@ -53,7 +55,7 @@ def _cloud(n=70, seed=0, ist=False) -> PointState:
 
 def _scene(points: PointState) -> PointScene:
     """Naive Plotting reads only ``scene.points``; the tree is built as a user would."""
-    return PointScene.build(points, RenderConfig.tiny())
+    return PointScene.build(points, tiny_render())
 
 
 def naive_loop(cfg, params, points: PointState, camera: Camera, background, near, far, radius):
@@ -310,7 +312,7 @@ def test_glossy_benchmark_camera_end_to_end():
     from it."""
     res, scene = 64, S.get_scene("glossy", 0.75)
     samples = S.surface_samples(scene, 20_000, seed=0)
-    cfg = RenderConfig.tiny()
+    cfg = tiny_render()
     pts = PointState.from_numpy(samples["xyz"], feature_dim=32, normal=samples["normal"], key=jax.random.key(0))
     params = init_color_model(cfg.shading, jax.random.key(1))
     c2w = cameras.orbit_cameras(8)[3]

@@ -27,6 +27,7 @@ from ne_jax.render.shading import init_color_model, shade
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
 
+from tests.mini_presets import tiny_render
 from tests.render.scenes import glossy_points
 
 RES = 16
@@ -44,7 +45,7 @@ def _stochastic(cfg: RenderConfig) -> RenderConfig:
 @pytest.fixture(scope="module")
 def setup():
     points = glossy_points()
-    cfg = RenderConfig.tiny(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
+    cfg = tiny_render(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
     scene = PointScene.build(points, cfg)
     params = init_color_model(cfg.shading, jax.random.key(0))
     camera = Camera.from_fov(cameras.orbit_cameras(8)[1], RES, RES, cameras.CAMERA_ANGLE_X)
@@ -55,7 +56,7 @@ def test_config_validates_the_field():
     with pytest.raises(ValueError, match="integration"):
         RenderConfig(integration="points")
     assert RenderConfig().integration == "segment"
-    assert RenderConfig.tiny(integration=SAMPLES).integration == SAMPLES
+    assert tiny_render(integration=SAMPLES).integration == SAMPLES
 
 
 def test_sample_positions_are_sub_interval_midpoints_or_stratified():
@@ -169,7 +170,7 @@ def _reference(cfg, params, scene, rays, background):
 def test_matches_a_float64_per_sample_reference():
     """Unpacked (``segments_per_ray=None``) and packed (8.0) against one reference (the budget changes
     neither the tree nor the segments)."""
-    base = RenderConfig.tiny(integration=SAMPLES)
+    base = tiny_render(integration=SAMPLES)
     scene = _two_plane_scene(base)
     params = init_color_model(base.shading, jax.random.key(5))
     xy = np.asarray([[0.05, 0.05], [-0.23, 0.31], [0.4, -0.12], [2.0, 2.0]])  # the last one misses

@@ -20,6 +20,7 @@ from ne_jax.render.renderer import (
 )
 from ne_jax.render.shading import init_color_model
 
+from tests.mini_presets import tiny_render
 from tests.render.scenes import glossy_points
 
 RES = 24
@@ -29,7 +30,7 @@ BG = jnp.array([1.0, 1.0, 1.0])
 @pytest.fixture(scope="module")
 def setup():
     points = glossy_points()
-    cfg = RenderConfig.tiny()
+    cfg = tiny_render()
     scene = PointScene.build(points, cfg)
     params = init_color_model(cfg.shading, jax.random.key(0))
     c2w = cameras.orbit_cameras(8)[1]

@@ -35,10 +35,14 @@ REPO = Path(__file__).resolve().parents[2]
 SMALL_RUN_SRC = """
 import jax, jax.numpy as jnp, numpy as np
 from ne_jax.geometry.points import PointState
+from ne_jax.geometry.kdtree import KDTreeConfig
+from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
 from ne_jax.train import TrainConfig, init_train_state
 
-SMALL_RCFG = RenderConfig.tiny()
+SMALL_RCFG = RenderConfig(tree=KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=16,
+                                            max_segments=16),
+                          quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=1024)
 SMALL_TCFG = TrainConfig(total_steps=50)
 
 def small_run(step=0):

@@ -11,9 +11,11 @@ from .test_step import RCFG, TCFG
 
 
 def test_configs_round_trip_with_types():
+    from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.render.renderer import RenderConfig
 
-    for cfg in (SMALL_TCFG, SMALL_RCFG, RenderConfig.paper(segments_per_ray=None),
+    paper = RenderConfig(tree=KDTreeConfig(depth=21, max_segments=64), segments_per_ray=None)
+    for cfg in (SMALL_TCFG, SMALL_RCFG, paper,
                 RCFG.with_effects(background="sphere")):
         data = json.loads(json.dumps(cj.config_to_json(cfg)))
         back = cj.config_from_json(data)

@@ -18,7 +18,7 @@ from ne_jax.data.nerf_synthetic import SceneSplit, composite, load_split
 from ne_jax.data.ply import read_ply
 from ne_jax.data.rays import pixel_rays
 from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import PointScene, RenderConfig, SegmentAux, render_rays, render_rays_with_aux
+from ne_jax.render.renderer import PointScene, SegmentAux, render_rays, render_rays_with_aux
 from ne_jax.train import (
     LossConfig,
     SamplerConfig,
@@ -36,10 +36,10 @@ from ne_jax.train import (
     sparsity_loss,
 )
 
-from tests.mini_presets import mini_benchmark
+from tests.mini_presets import mini_benchmark, tiny_render
 
 MINI = mini_benchmark(resolution=32, train_views=6, detail=0.5, surface_samples=3000)
-RCFG = RenderConfig.tiny()
+RCFG = tiny_render()
 SCFG = SamplerConfig(batch_size=512, band_width=2, band_fraction=0.1)
 TCFG = TrainConfig(total_steps=1000)
 STEPS = 40
