@@ -19,13 +19,15 @@ import numpy as np
 
 from ne_jax.data.rays import Rays
 from ne_jax.geometry import PointState
-from ne_jax.render.renderer import PointScene, render_rays
+from ne_jax.geometry.kdtree import KDTreeConfig
+from ne_jax.render.quadrature import QuadratureConfig
+from ne_jax.render.renderer import PointScene, RenderConfig, render_rays
 from ne_jax.render.shading import init_color_model
 
-from tests.mini_presets import tiny_render, tiny_tree
-
-CFG = tiny_render(tree=tiny_tree(depth=8, frontier_capacity=64, max_segments=48),
-                        segments_per_ray=None)
+# tests/mini_presets.tiny_render spelled out: this file also runs as a script in a subprocess
+CFG = RenderConfig(tree=KDTreeConfig(depth=8, candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=64,
+                                     max_segments=48),
+                   quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=1024, segments_per_ray=None)
 CAPACITY, N_POINTS, N_RAYS = 256, 200, 64
 
 
