@@ -22,8 +22,9 @@ def benchmark_edit(scene_dir: str | Path | None, name: str) -> tuple[Edit, Path 
     and the folder of the edited scene's ground truth (``None`` when not generated).
 
     Raises:
-        EditError: ``scene_dir`` is not a benchmark scene, or the scene has no edit ``name`` (the
-            message lists the edits it has).
+        EditError: ``scene_dir`` is not a benchmark scene, the scene has no edit ``name`` (the
+            message lists the edits it has), or its ground truth was generated for another
+            definition of the edit.
     """
     meta = _scene_meta(scene_dir)
     if meta.get("scene") not in SCENES:
@@ -32,8 +33,15 @@ def benchmark_edit(scene_dir: str | Path | None, name: str) -> tuple[Edit, Path 
     scene = get_scene(meta["scene"])
     if name not in scene.edits:
         raise EditError(f"edit {name!r}: expected one of the edits of scene {scene.name!r}: {sorted(scene.edits)}")
-    truth = Path(scene_dir) / "edits" / name
-    return scene.edits[name], truth if (truth / "transforms_test.json").is_file() else None
+    edit, truth = scene.edits[name], Path(scene_dir) / "edits" / name
+    if not (truth / "transforms_test.json").is_file():
+        return edit, None
+    made_for = _scene_meta(truth).get("edit_description")
+    if made_for != edit.description:
+        raise EditError(f"edit {name!r}: the ground truth in {truth} was generated for the edit {made_for!r}, but the "
+                        f"scene now defines {edit.description!r}; regenerate the benchmark "
+                        "(python -m experiments.make_benchmark)")
+    return edit, truth
 
 
 def resolve_edit(scene_dir: str | Path | None, edit: EditSource) -> tuple[EditSource, str, Path | None]:

@@ -189,12 +189,14 @@ def twist(name: str, center, axis, degrees_per_unit: float) -> Edit:
                 description=f"twist by {degrees_per_unit:g} deg per unit about {tuple(axis)}")
 
 
-def rigid_part(name: str, region: Region, axis, angle_deg: float, pivot, translation=(0.0, 0.0, 0.0)) -> Edit:
-    """Rotate (then translate) the points of ``region`` rigidly; the rest stays."""
+def rigid_part(name: str, region: Region, axis, angle_deg: float, pivot, translation=(0.0, 0.0, 0.0),
+               part: str = "a part") -> Edit:
+    """Rotate (then translate) the points of ``region`` rigidly; the rest stays. ``part`` names the
+    region in the description."""
     a, t = np.deg2rad(angle_deg), _vec(translation)
     def move(p):
         return jnp.where(region(p)[:, None], rotate_points(p, axis, a, pivot) + t, p)
-    return Edit(name, "rigid", move, description=f"rotate a part by {angle_deg:g} deg about {tuple(axis)}")
+    return Edit(name, "rigid", move, description=f"rotate {part} by {angle_deg:g} deg about {tuple(axis)}")
 
 
 def rigid_motion(axis, angle_deg: float, pivot=(0.0, 0.0, 0.0), translation=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -239,9 +241,9 @@ def cut(name: str, point, normal, gap: float) -> Edit:
                 description=f"cut at plane through {tuple(point)} normal {tuple(normal)}, gap {gap:g}")
 
 
-def delete_part(name: str, region: Region) -> Edit:
-    """Delete the points of ``region``; nothing moves."""
-    return Edit(name, "delete", lambda p: p, region, description="delete a part")
+def delete_part(name: str, region: Region, part: str = "a part") -> Edit:
+    """Delete the points of ``region``; nothing moves. ``part`` names the region in the description."""
+    return Edit(name, "delete", lambda p: p, region, description=f"delete {part}")
 
 
 def compose(name: str, *edits: Edit) -> Edit:

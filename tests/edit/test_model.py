@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -93,6 +94,20 @@ def test_edit_of_a_non_benchmark_scene_by_name_is_refused(trained, tmp_path):
     model = dataclasses.replace(load_trained(trained), scene_dir=tmp_path)
     with pytest.raises(EditError, match="expected the model's scene folder to be a benchmark scene"):
         benchmark_edit(model.scene_dir, "bend")
+
+
+def test_ground_truth_of_another_edit_definition_is_refused(scene_dir, tmp_path):
+    """A benchmark generated before an edit's definition changed names the folder and the two
+    definitions instead of scoring against the wrong images."""
+    copy = tmp_path / "scene"
+    shutil.copytree(scene_dir, copy)
+    meta_path = copy / "edits" / "bend" / "scene.json"
+    meta = json.loads(meta_path.read_text())
+    meta["edit_description"] = "bend by 10 deg"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(EditError, match=r"generated for the edit 'bend by 10 deg'.*regenerate"):
+        benchmark_edit(copy, "bend")
+    assert benchmark_edit(copy, "cut")[1] == copy / "edits" / "cut"  # the other edits still resolve
 
 
 def _check_finetuned(before, after, history, run_dir, train_ist):
