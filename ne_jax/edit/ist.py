@@ -157,7 +157,7 @@ def ist_neighbors(cfg: ISTConfig, xyz0, alive1) -> tuple[np.ndarray, np.ndarray]
     valid = np.zeros((c, k), bool)
     if idx.size > 1:
         kk = min(k + 1, idx.size)
-        _, nn = cKDTree(p0[idx]).query(p0[idx], k=kk)
+        _, nn = cKDTree(p0[idx]).query(p0[idx], k=kk, workers=-1)
         nn = idx[np.asarray(nn).reshape(idx.size, kk)]
         not_self = nn != idx[:, None]
         # drop the point itself (first, unless a duplicate sits at distance 0) and keep k
@@ -201,9 +201,11 @@ def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence,
         v, _ = _unit_rows(d1 - np.sum(d1 * nj1, -1, keepdims=True) * nj1)
         combos = np.array(list(itertools.combinations(range(k), 2)))
         ia, ib = combos[:, 0], combos[:, 1]
-        sin0 = np.linalg.norm(np.cross(u[:, ia], u[:, ib]), axis=-1)
-        sin1 = np.linalg.norm(np.cross(v[:, ia], v[:, ib]), axis=-1)
-        score = np.where(usable[:, ia] & usable[:, ib], np.minimum(sin0, sin1), -1.0)
+        # |sin| of the angle between unit tangents, from their dot product (a cross product costs 5x)
+        cos0 = np.einsum("nka,nka->nk", u[:, ia], u[:, ib])
+        cos1 = np.einsum("nka,nka->nk", v[:, ia], v[:, ib])
+        sin = np.sqrt(np.maximum(1.0 - np.maximum(cos0 * cos0, cos1 * cos1), 0.0))  # min(sin0, sin1)
+        score = np.where(usable[:, ia] & usable[:, ib], sin, -1.0)
         best = np.argmax(score, axis=1)
         best_score = score[np.arange(idx.size), best]
         normals_ok = (np.linalg.norm(n0[idx], axis=-1) > 0.5) & (np.linalg.norm(n1[idx], axis=-1) > 0.5)

@@ -89,7 +89,7 @@ def mean_spacing(xyz: np.ndarray) -> float:
     uniq = np.unique(xyz, axis=0)
     if uniq.shape[0] < 2:
         return 0.0
-    d, _ = cKDTree(uniq).query(uniq, k=2)
+    d, _ = cKDTree(uniq).query(uniq, k=2, workers=-1)
     return float(d[:, 1].mean())
 
 
@@ -145,7 +145,7 @@ def _visibility_votes(views: Views, xyz, normals, spacing, tolerance) -> np.ndar
 
 
 def _nearest_camera_sign(centers: np.ndarray, xyz, normals) -> np.ndarray:
-    _, near = cKDTree(centers).query(xyz, k=1)
+    _, near = cKDTree(centers).query(xyz, k=1, workers=-1)
     return np.sign(np.sum(normals * (centers[near] - xyz), axis=1))
 
 
@@ -189,7 +189,7 @@ def _propagate_signs(cfg: NormalConfig, xyz, normals, votes, spacing) -> np.ndar
     """``[N]`` signs in ``{-1, 0, 1}``: confident votes fixed, the rest by weighted neighbour
     agreement (see the module docstring), ``votes`` breaking ties; 0 where nothing decided."""
     k = min(int(cfg.propagate_k), len(xyz) - 1)
-    _, nb = cKDTree(xyz).query(xyz, k=k + 1)
+    _, nb = cKDTree(xyz).query(xyz, k=k + 1, workers=-1)
     nb = nb[:, 1:]
     height = np.abs(np.einsum("nkc,nc->nk", xyz[nb] - xyz[:, None], normals))
     weight = np.einsum("nkc,nc->nk", normals[nb], normals) * np.exp(-((height / max(spacing, 1e-12)) ** 2))
