@@ -63,13 +63,16 @@ class Viewer:
 
     ``Viewer(model_or_run_dir, port=8080, host="127.0.0.1")`` starts serving at once (also from a
     notebook); open :attr:`url` in a browser, :meth:`stop` ends it. ``port=0`` picks a free port.
+    ``warm_up`` (default on) compiles the edit path in the background at start (:attr:`warmed` is set
+    when done), so the first edit does not wait for it.
 
     Attributes read by tests and notebooks: :attr:`edit` (the :class:`~ne_jax.view.edits.ViewEdit`
     so far), :attr:`selection` (``[K]`` slots), :attr:`frames` (frames sent), :attr:`last_frame`
     (the last image sent, ``[H, W, 3]`` uint8)."""
 
     def __init__(self, model: TrainedModel | str | Path, port: int = 8080, host: str = "127.0.0.1", *,
-                 max_side: int = 128, preview_factor: int = 4, settle_s: float = 0.25, verbose: bool = False):
+                 max_side: int = 128, preview_factor: int = 4, settle_s: float = 0.25, warm_up: bool = True,
+                 verbose: bool = False):
         import viser
 
         if not isinstance(model, TrainedModel):
@@ -114,6 +117,11 @@ class Viewer:
         self._build_scene()
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(self._on_disconnect)
+        self.warmed = threading.Event()
+        if warm_up:
+            threading.Thread(target=self._warm_up, daemon=True, name="ne-jax-view-warm-up").start()
+        else:
+            self.warmed.set()
 
     # ---------------------------------------------------------------- public
     @property
@@ -259,6 +267,23 @@ class Viewer:
             cam.position = tuple(self._centre + np.array([1.0, -1.0, 0.6]) * self._extent)
             cam.look_at = tuple(self._centre)
         cam.up = (0.0, 0.0, 1.0)
+
+    def _warm_up(self) -> None:
+        """Compile the edit path before the first edit (a background thread; :attr:`warmed` is set
+        when done): the IST and the carried tree's traversal, through an identity edit rendered once.
+        Without it the first edit waits for these compilations (tens of seconds on a CPU)."""
+        from ne_jax.edit.model import edit_model
+
+        try:
+            edited, _ = edit_model(self.model, self.edit.rows(), ist=True, label="warm-up")
+            below = self._centre - np.array([0.0, 0.0, 3.0 * self._extent])  # looking up (+z) at the centre
+            with self._render_lock:
+                render_frame(edited, camera_from_viewer((1.0, 0.0, 0.0, 0.0), below, 0.7, 8, 8))
+        except Exception:  # the viewer works without it; the first edit then compiles
+            if not self._stopped:
+                self._set_status("warm-up failed: " + traceback.format_exc(limit=2).splitlines()[-1])
+        finally:
+            self.warmed.set()
 
     # ---------------------------------------------------------------- scene
     def _build_scene(self) -> None:

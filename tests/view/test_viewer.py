@@ -13,6 +13,7 @@ import pytest
 pytest.importorskip("viser")
 
 from ne_jax.cli import main  # noqa: E402
+from ne_jax.compiles import count_compiles  # noqa: E402
 from ne_jax.data.nerf_synthetic import load_split  # noqa: E402
 from ne_jax.train.model import load_trained  # noqa: E402
 from ne_jax.view import edits as E  # noqa: E402
@@ -69,6 +70,16 @@ def test_port_in_use_and_missing_run_are_refused(viewer, tmp_path):
 def test_edit_steps_and_save_match_ne_jax_edit(viewer, tmp_path):
     xyz = np.asarray(viewer.model.scene.points.xyz)[np.asarray(viewer.model.scene.points.alive)]
     centre = 0.5 * (xyz.min(0) + xyz.max(0))
+    # the warm-up compiled the edit path: the first edit and its render compile neither the IST nor
+    # the render of a carried tree (small eager ops for new shapes aside)
+    assert viewer.warmed.wait(300) and "failed" not in viewer.status
+    sel = viewer.select_region(E.Region.make("box", centre, np.ptp(xyz, 0) * 0.3))
+    wxyz, pos = _look_at(centre + (0, -3, 0), centre), centre + (0, -3, 0)
+    with count_compiles() as compiled:
+        viewer.move(E.Transform(translation=(0.05, 0, 0)))
+        viewer.render(wxyz, pos, np.deg2rad(40), 24, 16)
+    assert not {"jit(ist_from_plan)", "jit(_render_chunk)"} & set(compiled.names), compiled.names
+    assert viewer.undo() and viewer.edited_model is viewer.model
     with pytest.raises(E.SelectionError, match="found none"):
         viewer.select_region(E.Region.make("sphere", centre + 100, 0.01))
         viewer.move(E.Transform(translation=(0.1, 0, 0)))
