@@ -118,28 +118,25 @@ def _parallel_and_inverse(direction):
 
 
 def _compact(mask, values, capacity):
-    """Move the entries of ``values`` (tuple of ``[n]`` arrays) where ``mask`` to the front of
-    ``capacity`` slots (stable). Returns ``(compacted, kept_mask, total)``."""
+    """Move the entries of ``values`` (tuple of ``[n, ...]`` arrays) where ``mask [n]`` to the front
+    of ``capacity`` slots (stable). Returns ``(compacted, kept_mask, total)``."""
     pos = jnp.cumsum(mask.astype(jnp.int32)) - 1
     target = jnp.where(mask & (pos < capacity), pos, capacity)
-    out = tuple(jnp.zeros((capacity + 1,), v.dtype).at[target].set(v)[:capacity] for v in values)
+    out = tuple(jnp.zeros((capacity + 1,) + v.shape[1:], v.dtype).at[target].set(v)[:capacity] for v in values)
     total = jnp.sum(mask, dtype=jnp.int32)  # int32 under x64 too (scan carry)
     kept = jnp.arange(capacity) < total
     return out, kept, total
 
 
-def _ray_in_frame(tree: KDTree, node, level, origin, direction):
-    """The ray in the frame of the boxes of ``node`` (heap indices, any shape) at ``level``: the
-    carried frame of its ancestor at ``tree.frame_level`` (:class:`~ne_jax.geometry.kdtree.KDTree`),
-    or the world for nodes above that level. Returns ``(origin, direction)`` ``[..., 3]``; a rotation
-    keeps ``t`` the same distance along the ray."""
-    nf = tree.frame_rot.shape[0]
-    row = jnp.clip(((node + 1) >> jnp.maximum(level - tree.frame_level, 0)) - nf, 0, nf - 1)
+def _ray_in_frame(tree: KDTree, node, origin, direction):
+    """The ray in the carried frame of ``node`` (heap indices at ``tree.frame_level``, any shape):
+    ``(origin, inv_dir, parallel)`` ``[..., 3]`` for :func:`slab_intersect`. A similarity keeps
+    ``t`` the same distance along the ray."""
+    row = node - (2**tree.frame_level - 1)
     rot, shift = tree.frame_rot[row], tree.frame_shift[row]
     o = jnp.sum(rot * origin, axis=-1) + shift
-    d = jnp.sum(rot * direction, axis=-1)
-    carried = jnp.broadcast_to(level >= tree.frame_level, node.shape)[..., None]
-    return jnp.where(carried, o, origin), jnp.where(carried, d, direction)
+    par, inv = _parallel_and_inverse(jnp.sum(rot * direction, axis=-1))
+    return o, inv, par
 
 
 def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig, first_emit: int, f_cap: int):
@@ -148,18 +145,29 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
     m_cap = cfg.max_segments
     par, inv = _parallel_and_inverse(direction)
     min_len = (cfg.min_hit_factor * tree.spacing).astype(dtype)
-    world_test = functools.partial(slab_intersect, origin=origin, inv_dir=inv, parallel=par, near=near, far=far,
-                                   min_len=min_len)
-    if tree.has_frames:
-        def test(lo, hi, node, level):  # boxes in their carried frames
-            o, d = _ray_in_frame(tree, node, level, origin, direction)
-            p, i = _parallel_and_inverse(d)
-            return slab_intersect(lo, hi, o, i, p, near, far, min_len)
-    else:
-        def test(lo, hi, node, level):
-            return world_test(lo, hi)
+    world = (origin, inv, par)
+    # Levels at and below a carried tree's frame level are tested in their subtree's frame: the ray
+    # is mapped once per frontier node entering that level, and its children inherit it.
+    frame_level = tree.frame_level if tree.has_frames else depth
 
-    r_lo, r_hi, r_hit = test(tree.lo[0], tree.hi[0], jnp.zeros((), jnp.int32), 0)
+    def test(lo, hi, ray):
+        o, i, p = ray
+        return slab_intersect(lo, hi, o, i, p, near, far, min_len)
+
+    def kids_in_world(kids, ray):  # -> (the ray each kid's box is tested with, what the frontier keeps)
+        return world, None
+
+    def kids_enter_frames(kids, ray):
+        ray = _ray_in_frame(tree, kids, origin, direction)
+        return ray, ray
+
+    def kids_inherit_frames(kids, ray):
+        ray = tuple(r[:, None, :] for r in ray)
+        return ray, tuple(jnp.broadcast_to(r, kids.shape + (3,)) for r in ray)
+
+    root = jnp.zeros((), jnp.int32)
+    root_ray = _ray_in_frame(tree, root, origin, direction) if frame_level == 0 else world
+    r_lo, r_hi, r_hit = test(tree.lo[0], tree.hi[0], root_ray)
     r_hit = r_hit & (tree.count[0] > 0)
     slot0 = jnp.arange(f_cap) == 0
     front = (
@@ -167,6 +175,7 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
         jnp.where(slot0, r_lo, 0).astype(dtype),
         jnp.where(slot0, r_hi, 0).astype(dtype),
         slot0 & r_hit,
+        tuple(jnp.broadcast_to(r, (f_cap, 3)) for r in root_ray) if frame_level == 0 else None,
     )
     out = (
         jnp.zeros((m_cap + 1,), dtype),
@@ -183,24 +192,32 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
         out = tuple(o.at[target].set(v) for o, v in zip(out, (t_lo, t_hi, node, lev)))
         return out, n_out + jnp.sum(mask, dtype=jnp.int32)
 
-    def step(carry, level):
-        (node, t_lo, t_hi, live), out, n_out, f_over = carry
+    def step(kid_rays, carry, level):
+        (node, t_lo, t_hi, live, ray), out, n_out, f_over = carry
         kids = jnp.stack([2 * node + 1, 2 * node + 2], axis=-1)  # [F, 2]
-        k_lo, k_hi, k_hit = test(tree.lo[kids], tree.hi[kids], kids, level + 1)
+        k_ray, keep_ray = kid_rays(kids, ray)
+        k_lo, k_hi, k_hit = test(tree.lo[kids], tree.hi[kids], k_ray)
         k_hit = k_hit & live[:, None] & (tree.count[kids] > 0)
         leaf_parent = ~jnp.any(k_hit, axis=-1)
         mask = live & tree.valid[node] & leaf_parent & (level >= first_emit)
         out, n_out = emit(out, n_out, level, node, t_lo, t_hi, mask)
-        (node, t_lo, t_hi), kept, total = _compact(
-            k_hit.reshape(-1), (kids.reshape(-1), k_lo.reshape(-1), k_hi.reshape(-1)), f_cap
+        kept_rays = () if keep_ray is None else tuple(r.reshape(-1, 3) for r in keep_ray)
+        (node, t_lo, t_hi, *ray), kept, total = _compact(
+            k_hit.reshape(-1), (kids.reshape(-1), k_lo.reshape(-1), k_hi.reshape(-1), *kept_rays), f_cap
         )
         f_over = f_over + jnp.maximum(total - f_cap, 0)
-        return ((node, t_lo, t_hi, kept), out, n_out, f_over), None
+        return ((node, t_lo, t_hi, kept, tuple(ray) if ray else None), out, n_out, f_over), None
 
     carry = (front, out, zero, zero)
-    if depth > 1:
-        carry, _ = lax.scan(step, carry, jnp.arange(depth - 1, dtype=jnp.int32))
-    (node, t_lo, t_hi, live), out, n_out, f_over = carry
+    # parents at levels [a, b) with the kids' rays of each phase
+    for kid_rays, a, b in ((kids_in_world, 0, frame_level - 1), (kids_enter_frames, frame_level - 1, frame_level),
+                           (kids_inherit_frames, frame_level, depth - 1)):
+        a, b = max(a, 0), min(b, depth - 1)
+        if a < b and kid_rays is kids_enter_frames:  # one level, and the frontier gains its rays
+            carry, _ = step(kid_rays, carry, jnp.asarray(a, jnp.int32))
+        elif a < b:
+            carry, _ = lax.scan(functools.partial(step, kid_rays), carry, jnp.arange(a, b, dtype=jnp.int32))
+    (node, t_lo, t_hi, live, _), out, n_out, f_over = carry
     mask = live & tree.valid[node]
     out, n_out = emit(out, n_out, depth - 1, node, t_lo, t_hi, mask)
 
