@@ -60,13 +60,17 @@ def _run_config(args):
 def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True) -> dict:
     """Render and score a split of ``model``; write ``out/metrics.json`` and ``out/images/*.png``."""
     from ne_jax.atomic import atomic_write_json
-    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.data.nerf_synthetic import composite, load_split
     from ne_jax.eval import evaluate_model, save_images
+    from ne_jax.eval.regions import error_map_picture, split_regions
 
     split = load_split(scene_dir, split_name)
     report, images = evaluate_model(model, split, progress=progress)
+    report["regions"], labels = split_regions(split, images, model.background)
+    truth = composite(split.images, report["background"])
     names = [f"{i:03d}_{Path(p).name}.png" for i, p in enumerate(split.file_paths)]
     save_images(images, out / "images", names)
+    save_images([error_map_picture(t, p, lab) for t, p, lab in zip(truth, images, labels)], out / "error_maps", names)
     atomic_write_json(out / "metrics.json", report)
     return report
 
@@ -76,6 +80,11 @@ def _print_eval(report: dict, out: Path) -> None:
     lpips = "" if lp is None else f", LPIPS {lp:.4f} ({report.get('lpips_net')})"
     print(f"{report['split']}: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f}{lpips} "
           f"(mean of {report['num_views']} views, background {report['background']}) -> {out}")
+    if "regions" in report:  # the largest shares of the squared error first
+        parts = sorted(report["regions"].items(), key=lambda kv: -kv[1]["error"])
+        print("  error by region: " + ", ".join(f"{k} {100 * v['error']:.0f}% ({100 * v['pixels']:.0f}% of pixels)"
+                                                 for k, v in parts if v["error"] >= 0.005)
+              + f"; pictures in {out / 'error_maps'}")
 
 
 def _cmd_train(args) -> int:

@@ -139,8 +139,12 @@ def test_cli_edit_and_finetune(trained, tmp_path, capsys):
     assert "edit 'cut'" in out and "zero-shot test: PSNR" in out
     assert main(["finetune", str(tmp_path / "e"), "--out", str(tmp_path / "f"), "--steps-per-epoch", "2",
                  "--quiet"]) == 0
-    assert "test: PSNR" in capsys.readouterr().out
-    assert (tmp_path / "f" / "eval_test" / "metrics.json").is_file()
+    out = capsys.readouterr().out
+    assert "test: PSNR" in out and "error by region: " in out
+    report = json.loads((tmp_path / "f" / "eval_test" / "metrics.json").read_text())
+    assert set(report["regions"]) == {"silhouette", "hole", "highlight", "texture", "flat", "background"}
+    assert sum(r["error"] for r in report["regions"].values()) == pytest.approx(1.0)
+    assert len(list((tmp_path / "f" / "eval_test" / "error_maps").glob("*.png"))) == report["num_views"]
     # fine-tuning without trainable ISTs (the default): features trained, ISTs untouched
     history = json.loads((tmp_path / "f" / "metrics.json").read_text())["epochs"]
     _check_finetuned(load_trained(tmp_path / "e").scene.points, load_trained(tmp_path / "f").scene.points,
