@@ -19,6 +19,7 @@ Sub-commands:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import sys
@@ -87,13 +88,31 @@ def _print_eval(report: dict, out: Path) -> None:
               + f"; pictures in {out / 'error_maps'}")
 
 
+def _declared(run, scene_dir: Path, spec: str):
+    """``run`` with the effects ``spec`` declares (:mod:`ne_jax.train.effects`), and the record."""
+    from ne_jax.train.effects import declare_effects
+
+    split = cloud = None
+    if spec.strip() == "auto":  # decided from the training views and the carved cloud
+        from ne_jax.data.nerf_synthetic import load_split
+        from ne_jax.pointcloud.init import CarvingError, Views
+        from ne_jax.train.loop import initial_cloud
+
+        split = load_split(scene_dir, "train")
+        with contextlib.suppress(CarvingError):  # images without masks: no cloud, specular stays on
+            cloud = initial_cloud(run.init, scene_dir, Views.from_split(split)).xyz
+    render, record = declare_effects(run.render, spec, scene_dir, split, cloud)
+    return run.replace(render=render), record
+
+
 def _cmd_train(args) -> int:
     from ne_jax.train.loop import train
 
-    run = _run_config(args)
     scene_dir, out = Path(args.scene), Path(args.out)
+    run, effects = _declared(_run_config(args), scene_dir, args.effects)
+    print("effects: " + ", ".join(f"{k}={v}" for k, v in effects["effects"].items()) + f" ({effects['source']})")
     t0 = time.perf_counter()
-    result = train(run, scene_dir, out, resume=not args.restart, progress=not args.quiet)
+    result = train(run, scene_dir, out, resume=not args.restart, progress=not args.quiet, notes={"effects": effects})
     print(f"trained {run.total_steps} steps in {time.perf_counter() - t0:.1f} s -> {out}")
     if not args.no_eval and (scene_dir / "transforms_test.json").exists():
         report = _evaluate(result, scene_dir, "test", out / "eval_test", progress=not args.quiet)
@@ -329,6 +348,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--ply", default=None, help="the initial cloud for --init ply")
     tr.add_argument("--background", default="white", choices=["white", "black"])
     tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--effects", default="scene", metavar="SPEC",
+                    help="effects the model computes: scene (what the scene folder's scene.json declares, else the "
+                         "preset's; default), auto (decided from the training views), all, or pairs such as "
+                         "specular=off,background=sphere (specular=on|off, background=constant|sphere)")
     tr.add_argument("--restart", action="store_true",
                     help="start afresh: remove the checkpoints and metrics of an earlier run in --out")
     tr.add_argument("--no-eval", action="store_true", help="skip evaluating the test views after training")

@@ -21,6 +21,7 @@ The ground truth is rendered by the preset's ``renderer`` (:data:`RENDERERS`): t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -65,6 +66,10 @@ class BenchmarkPreset:
     """The ground-truth renderer, a key of :data:`RENDERERS`."""
     spp: int = 0
     """Samples per pixel of the path tracer (``renderer="pathtrace"``; unused by the ray caster)."""
+    matte: bool = False
+    """Every surface without highlights and reflections (a variant that needs no view-dependent colour)."""
+    alpha: bool = True
+    """False: images composited on white and saved without alpha (a variant that needs a background model)."""
 
     def __post_init__(self):
         if self.renderer not in RENDERERS:
@@ -79,7 +84,22 @@ class BenchmarkPreset:
         out = asdict(self)
         if self.renderer == "raycast":
             del out["renderer"], out["spp"]
+        for name, default in (("matte", False), ("alpha", True)):  # variants only
+            if out[name] == default:
+                del out[name]
         return out
+
+    def effects(self, scene: S.Scene) -> dict:
+        """The effects a model of ``scene`` rendered by this preset needs (``scene.json``'s
+        ``effects``, :mod:`ne_jax.train.effects`): view-dependent colour where a surface has a
+        highlight or a reflection, a learned background where the images have no alpha."""
+        if self.renderer == "raycast":
+            shiny = any(m.ks > 0 or m.reflect > 0 for m in scene.materials)
+        else:
+            from ne_jax.benchmark import pathtracer
+
+            shiny = any(s.kind != "diffuse" for s in pathtracer.scene_surfaces(scene.name, scene.materials))
+        return {"specular": bool(shiny and not self.matte), "background": "constant" if self.alpha else "sphere"}
 
 
 PRESETS = {
@@ -122,7 +142,9 @@ def _renderer(scene: S.Scene, edit, preset: BenchmarkPreset):
         return (lambda c2w, seed: caster.render(c2w, res, res, angle, preset.supersample)), description
     from ne_jax.benchmark import pathtracer  # imports Mitsuba: only for a path-traced preset
 
-    tracer = pathtracer.PathTracer(mesh, scene.materials, pathtracer.scene_surfaces(scene.name, scene.materials),
+    surfaces = (tuple(pathtracer.Surface("diffuse") for _ in scene.materials) if preset.matte
+                else pathtracer.scene_surfaces(scene.name, scene.materials))
+    tracer = pathtracer.PathTracer(mesh, scene.materials, surfaces,
                                    max_edge=pathtracer.pixel_footprint(res, angle), spp=preset.spp)
     description = (f"mitsuba {tracer.mi.__version__} {pathtracer.VARIANT} path tracer, {preset.spp} spp, "
                    f"max depth {pathtracer.MAX_DEPTH}, procedural environment map (sky and sun spots), "
@@ -144,6 +166,9 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
     """Render one scene and all its edits into ``root/<scene_name>``; returns timings in seconds."""
     t0 = time.perf_counter()
     scene = S.get_scene(scene_name, preset.detail)
+    if preset.matte:
+        scene = dataclasses.replace(scene, materials=tuple(dataclasses.replace(m, ks=0.0, reflect=0.0)
+                                                           for m in scene.materials))
     cams = {
         "train": cameras.random_cameras(preset.train_views, _rng(seed, scene_name, "train")),
         "val": cameras.random_cameras(preset.val_views, _rng(seed, scene_name, "val")),
@@ -166,6 +191,9 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
                     0, 2**31, len(cams[split]))
                 rendered = _render_split(render, S.truth_cameras(edit, cams[split]), seeds, preset.resolution,
                                          f"{scene_name}/{edit_name or 'original'}/{split}")
+                if not preset.alpha:  # on white, opaque
+                    a = rendered[..., 3:]
+                    rendered = np.concatenate([rendered[..., :3] * a + (1.0 - a), np.ones_like(a)], axis=-1)
                 write_split(target, split, rendered, cams[split], cameras.CAMERA_ANGLE_X)
                 images += len(rendered)
             _write_points(target / "points.ply", samples if edit is None else S.edit_samples(samples, edit))
@@ -179,6 +207,7 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
                 "near": cameras.NEAR,
                 "far": cameras.FAR,
                 "renderer": description,
+                "effects": preset.effects(scene),
             }
             if preset.renderer != "raycast":  # the one field that is not the same bytes for a seed
                 meta["generation"] = {"images": images, "seconds": round(time.perf_counter() - t1, 2)}

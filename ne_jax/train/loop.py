@@ -127,8 +127,10 @@ def _epoch_summary(metrics: list[dict]) -> dict:
     return out
 
 
-def _write_metrics(run_dir: Path, scene_dir: Path, initial: dict, history: list) -> None:
+def _write_metrics(run_dir: Path, scene_dir: Path, initial: dict, history: list, notes: dict) -> None:
     data = {"scene_dir": str(scene_dir.resolve()), "initial_cloud": initial, "epochs": history}
+    if notes:
+        data["notes"] = notes
     atomic_write_text(run_dir / METRICS_FILE, json.dumps(_json_safe(data), indent=2, allow_nan=False) + "\n")
 
 
@@ -146,7 +148,7 @@ def _check_resume_config(run_dir: Path, run: RunConfig) -> None:
 
 def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume: bool = True,
           progress: bool = True, log: Callable[[str], None] = print, stop_after_epoch: int | None = None,
-          split: SceneSplit | None = None, start: StartFrom | None = None) -> TrainedModel:
+          split: SceneSplit | None = None, start: StartFrom | None = None, notes: dict | None = None) -> TrainedModel:
     """Train a model of the scene in ``scene_dir`` (NeRF Synthetic layout, ``train`` split).
 
     Args:
@@ -160,6 +162,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         stop_after_epoch: return after this epoch (as if the run were stopped there).
         split: the training split, if already loaded (else read from ``scene_dir``).
         start: begin from this model instead of ``run.init``'s cloud (ignored when resuming).
+        notes: recorded in ``metrics.json`` as ``notes`` (e.g. why the run declares its effects,
+            :func:`~ne_jax.train.effects.declare_effects`); a resume keeps the first run's.
 
     Raises:
         DataError / ValueError: a bad scene folder (named), masks without foreground, a bad config.
@@ -190,6 +194,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         state, points, meta = load_checkpoint(latest, run.train, run.render)
         extra = meta.get("extra", {})
         history, initial = list(extra.get("history", [])), extra.get("initial_cloud", {})
+        notes = extra.get("notes", notes)
         log(f"resuming {run_dir} from {latest.name} (step {int(state.step)}, epoch {len(history)})")
     elif start is not None:
         points = start.points
@@ -272,10 +277,10 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
             record["alive"] = int(np.asarray(scene.points.alive).sum())
             history.append(record)
             save_checkpoint(ckpt_dir, state, state.point_state(scene.points), run.train, run.render,
-                            extra=_json_safe({"history": history, "initial_cloud": initial,
+                            extra=_json_safe({"history": history, "initial_cloud": initial, "notes": notes or {},
                                               "segments_per_ray": render.segments_per_ray}),
                             keep=run.checkpoint_keep)
-            _write_metrics(run_dir, scene_dir, initial, history)
+            _write_metrics(run_dir, scene_dir, initial, history, notes or {})
             log(_epoch_line(record))
             if stop_after_epoch is not None and epoch >= stop_after_epoch:
                 break
