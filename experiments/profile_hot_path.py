@@ -1,0 +1,366 @@
+"""A profile of the ``default`` preset's hot path, by stage, against the machine's matmul FLOP/s.
+
+    python -m experiments.profile_hot_path [--reference-path /tmp/ne/prof_ref] [--repeats 5] [--rounds 2] [--quick]
+
+Scene: 100,000 points sampled on the benchmark's glossy surface (the ``default`` preset's cloud
+size), 32-wide random features, the ``default`` render config (tree, K = 16 of 32 candidates,
+s = 4, 6), its tree built here. Rays: a 200 px orbit camera (the ``default`` scenes' size); the
+render batch is one ``default`` chunk (4,096 consecutive pixels through the middle of the image), the
+training batch 2,048 rays, 90% of them hitting the cloud (the sampler draws foreground and silhouette
+band), its packing budget fitted as training fits it.
+
+Every stage is jitted alone on the inputs the previous stage produced and timed (best of
+``--repeats`` after a compiling call, ``block_until_ready``): traversal (``intersect``), packing
+and sampling (segment packing, ``level_samples``), candidate gather and top-k
+(``_candidate_search``), interpolation and integration (the rest of ``knn_integrate``), the
+MLPs (``shade``), compositing (unpack + ``composite``); then the whole render of the batch, the
+render's backward pass (a VJP of ``render_rays_with_aux``, forward + backward), the whole training
+step (forward, losses, backward, Adam) and the host side (the tree rebuilt after a point round,
+amortised over an epoch's steps). FLOPs per stage come from XLA's ``cost_analysis`` of the
+compiled stage; achieved GFLOP/s are set against a ``jnp.dot`` of two 2048 x 2048 float32
+matrices measured in the same run.
+
+Old vs new: the whole render and the whole training step are also timed, in subprocesses, with the
+code at ``--reference-path`` (a worktree of the reference commit) and with this checkout,
+alternating, so the ratio is measured in one run on the same (shared) machine.
+Writes ``experiments/results/profile_hot_path.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "experiments" / "results"
+CONFIG = "default"
+IMAGE = 200
+TRAIN_RAYS = 2048
+RENDER_RAYS = 4096
+POINTS = 100_000
+
+
+def _commit(path: Path) -> str:
+    try:
+        head = subprocess.run(["git", "-C", str(path), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(path), "status", "--porcelain", "--", "ne_jax"],
+                               capture_output=True, text=True).stdout.strip()
+        return head + ("+dirty" if dirty else "")
+    except Exception:  # noqa: BLE001
+        return "unknown"
+
+
+def best_time(fn, repeats: int) -> float:
+    """Best wall time of ``fn()`` (its result blocked on) over ``repeats`` calls after one warm-up."""
+    import jax
+
+    jax.block_until_ready(fn())
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def flops_of(jitted, *args) -> float | None:
+    """XLA's estimated FLOPs of the compiled ``jitted(*args)`` (None when the backend gives none)."""
+    try:
+        ca = jitted.lower(*args).compile().cost_analysis()
+    except Exception:  # noqa: BLE001
+        return None
+    if isinstance(ca, (list, tuple)):
+        ca = ca[0] if ca else None
+    if not ca or "flops" not in ca:
+        return None
+    return float(ca["flops"])
+
+
+def build_inputs(quick: bool):
+    """The ``default`` scene, a render batch and a training batch (see the module docstring)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ne_jax.benchmark import scenes as S
+    from ne_jax.data import cameras
+    from ne_jax.data.rays import Camera, camera_rays
+    from ne_jax.geometry.intersect import intersect
+    from ne_jax.geometry.points import PointState
+    from ne_jax.render.renderer import PointScene
+    from ne_jax.train.run import get_run_preset
+
+    run = get_run_preset(CONFIG)
+    cfg = run.render
+    n = 20_000 if quick else POINTS
+    smp = S.get_scene("glossy", 1.0)
+    smp = S.surface_samples(smp, n, seed=0)
+    pts = PointState.from_numpy(smp["xyz"].astype(np.float32), feature_dim=cfg.shading.feature_dim,
+                                normal=smp["normal"].astype(np.float32))
+    feat = jax.random.normal(jax.random.key(0), pts.feature.shape) * 0.5
+    pts = pts.replace(feature=feat, conf_logit=jnp.full(pts.conf_logit.shape, 2.0))
+    t0 = time.perf_counter()
+    scene = PointScene.build(pts, cfg)
+    build_s = time.perf_counter() - t0
+    cam = Camera.from_fov(cameras.orbit_cameras(4)[1], IMAGE, IMAGE, cameras.CAMERA_ANGLE_X)
+    rays = camera_rays(cam, cameras.NEAR, cameras.FAR)
+    mid = (IMAGE * IMAGE) // 2 - RENDER_RAYS // 2  # a chunk through the middle of the image
+    render_rays = rays.take(slice(mid, mid + RENDER_RAYS))
+    hits = np.asarray(intersect(scene.tree, rays, cfg.tree).num_segments) > 0
+    rng = np.random.default_rng(0)
+    n_hit = int(0.9 * TRAIN_RAYS)
+    idx = np.concatenate([rng.choice(np.flatnonzero(hits), n_hit),
+                          rng.choice(np.flatnonzero(~hits), TRAIN_RAYS - n_hit)])
+    train_rays = rays.take(jnp.asarray(idx))
+    target = jnp.concatenate([jax.random.uniform(jax.random.key(2), (TRAIN_RAYS, 3)), jnp.ones((TRAIN_RAYS, 1))], -1)
+    train_rays = train_rays.replace(target=target)
+    return run, scene, render_rays, train_rays, build_s, float(np.mean(hits))
+
+
+def measure_whole(repeats: int, quick: bool) -> dict:
+    """Rays/s of the whole ``default`` render (one chunk) and training step, with whatever ``ne_jax``
+    is importable (this checkout, or the reference through ``PYTHONPATH``)."""
+    import jax
+    import jax.numpy as jnp
+
+    import ne_jax
+    from ne_jax.render.renderer import render_rays
+    from ne_jax.train.loop import fit_segment_budget
+    from ne_jax.train.sampler import Batch
+    from ne_jax.train.state import init_train_state
+    from ne_jax.train.step import make_train_step
+
+    run, scene, rrays, trays, _, _ = build_inputs(quick)
+    cfg = fit_segment_budget(run.render, scene, trays)
+    bg = jnp.ones(3)
+    params_state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
+    render = jax.jit(lambda p, sc, r: render_rays(run.render, p, sc, r, bg))
+    t_render = best_time(lambda: render(params_state.params, scene, rrays), repeats)
+    step = make_train_step(run.train, cfg)
+    batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
+                  background=bg)
+    state = params_state
+    t_step = best_time(lambda: step(state, scene, batch)[1]["loss/total"], repeats)
+    out = step(state, scene, batch)[1]
+    return {"ne_jax": str(Path(ne_jax.__file__).resolve().parent.parent), "render_rays_per_s": RENDER_RAYS / t_render,
+            "render_ms": 1e3 * t_render, "step_rays_per_s": TRAIN_RAYS / t_step, "step_ms": 1e3 * t_step,
+            "loss": float(out["loss/total"]), "dropped": int(out["dropped"]), "overflow": int(out["overflow"])}
+
+
+def profile_stages(repeats: int, quick: bool) -> dict:
+    """Every stage of the render and the step jitted alone, with time and XLA FLOPs (this checkout)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ne_jax.geometry import knn as K
+    from ne_jax.geometry.intersect import intersect
+    from ne_jax.geometry.kdtree import build_tree
+    from ne_jax.render.composite import composite
+    from ne_jax.render.quadrature import level_samples
+    from ne_jax.render.renderer import _values_to_interpolate, render_rays, render_rays_with_aux
+    from ne_jax.render.shading import shade
+    from ne_jax.train.loop import fit_segment_budget
+    from ne_jax.train.sampler import Batch
+    from ne_jax.train.state import init_train_state
+    from ne_jax.train.step import make_train_step
+
+    run, scene, rrays, trays, build_s, hit_share = build_inputs(quick)
+    bg = jnp.ones(3)
+    a = jnp.ones((2048, 2048), jnp.float32)
+    mm = jax.jit(lambda x: x @ x)
+    t_mm = best_time(lambda: mm(a), repeats)
+    peak = 2 * 2048**3 / t_mm
+    rows = []
+
+    def add(name, kind, rays, fn, *args, flops=None):
+        j = jax.jit(fn)
+        t = best_time(lambda: j(*args), repeats)
+        f = flops_of(j, *args) if flops is None else flops
+        rows.append({"stage": name, "batch": kind, "rays": rays, "ms": 1e3 * t,
+                     "gflop": None if f is None else f / 1e9,
+                     "gflop_per_s": None if f is None else f / t / 1e9,
+                     "vs_matmul": None if f is None else f / t / peak})
+        print(f"{kind:6s} {name:36s} {1e3 * t:9.2f} ms  {'' if f is None else f'{f / t / 1e9:8.2f} GFLOP/s'}",
+              flush=True)
+        return j(*args)
+
+    def one(kind, rays):  # the stages of one batch ("render" or "train")
+        cfg = fit_segment_budget(run.render, scene, trays) if kind == "train" else run.render
+        tc = cfg.tree
+        tree = scene.tree
+        params = init_train_state(run.train, cfg, scene.points, jax.random.key(1)).params
+        aux = kind == "train"
+        r = rays.num_rays
+        seg = add("traversal", kind, r, lambda tr, ry: intersect(tr, ry, tc), tree, rays)
+        m = seg.valid.shape[1]
+        budget = cfg.segment_budget(r)
+
+        def pack(seg, rays, depth):
+            flat = lambda x: x.reshape((r * m,) + x.shape[2:])  # noqa: E731
+            (slot,) = jnp.nonzero(flat(seg.valid), size=budget, fill_value=0)
+            live = jnp.arange(budget) < jnp.sum(seg.valid)
+            ray = slot // m
+            o, d = rays.origin[ray], rays.direction[ray]
+            t, w = level_samples(cfg.quadrature, flat(seg.t_lo)[slot], flat(seg.t_hi)[slot],
+                                 (depth - 1) - flat(seg.level)[slot])
+            pos = o[:, None, :] + t[..., None] * d[:, None, :]
+            return slot, live, d, pos, w, flat(seg.node)[slot].astype(jnp.int32)
+
+        slot, live, d, pos, w, node = add("packing and sampling", kind, r, pack, seg, rays, tree.depth)
+        eps = (tc.knn_eps_factor * tree.spacing).astype(jnp.float32)
+        pts = scene.points
+        nb, ci, j = add("candidate gather and top-k", kind, r,
+                        lambda p, t_, x, n_: K._candidate_search(p, t_, x, n_, tc.knn_k, eps), pts, tree, pos, node)
+        needed = _values_to_interpolate(pts, cfg.shading.effects, aux)
+
+        def integ(nbw, ci, j, w, vals):
+            b = jnp.arange(ci.shape[0])[:, None, None]
+            pc = jnp.zeros(ci.shape, jnp.float32).at[b, j].add(w[:, :, None] * nbw)
+            return {k: jnp.einsum("bc,bcd->bd", pc, v.reshape(v.shape[0], -1)[ci]) for k, v in vals.items()}
+
+        means = add("interpolation and integration", kind, r, integ, nb.weight, ci, j, w, needed)
+        means = {k: v.reshape((v.shape[0],) + needed[k].shape[1:]) for k, v in means.items()}
+        sh = add("MLPs (shade)", kind, r, lambda p, f, nrm, dd: shade(cfg.shading, p, f, nrm, dd),
+                 params, means["feature"], means.get("normal"), d)
+
+        def comp(sigma, rgb, seg, slot, live):
+            def unpack(v):
+                target = jnp.where(live, slot, r * m)
+                return jnp.zeros((r * m,) + v.shape[1:], v.dtype).at[target].set(v, mode="drop").reshape(
+                    (r, m) + v.shape[1:])
+            keep = unpack(live)
+            return composite(unpack(sigma), unpack(rgb), (seg.t_hi - seg.t_lo) / tree.spacing, keep,
+                             0.5 * (seg.t_lo + seg.t_hi), bg).rgb
+
+        add("compositing", kind, r, comp, sh.sigma, sh.rgb, seg, slot, live)
+        if kind == "render":
+            add("whole render", kind, r, lambda p, sc, ry: render_rays(cfg, p, sc, ry, bg).rgb, params, scene, rays)
+            return
+        state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
+        add("whole forward (render with aux)", kind, r,
+            lambda p, sc, ry: render_rays_with_aux(cfg, p, sc, ry, bg), state.params, scene, rays)
+
+        def fwd_bwd(tr, sc, ry):
+            def f(tr):
+                p = sc.points.replace(**tr["points"])
+                out, a_ = render_rays_with_aux(cfg, tr["params"], sc.replace(points=p), ry, bg)
+                return jnp.sum(out.rgb) + jnp.sum(a_.weights)
+            return jax.grad(f)(tr)
+
+        add("forward + backward (render VJP)", kind, r, fwd_bwd, state.trainables, scene, rays)
+        step = make_train_step(run.train, cfg)
+        batch = Batch(rays=rays, pixel=jnp.zeros(r, jnp.int32), in_band=jnp.zeros(r, bool), background=bg)
+        t = best_time(lambda: step(state, scene, batch)[1]["loss/total"], repeats)
+        rows.append({"stage": "whole training step", "batch": kind, "rays": r, "ms": 1e3 * t, "gflop": None,
+                     "gflop_per_s": None, "vs_matmul": None})
+        print(f"train  whole training step {1e3 * t:9.2f} ms", flush=True)
+        # host side: a tree rebuild after each point round (run.point_rounds), amortised over an epoch
+        t0 = time.perf_counter()
+        build_tree(np.asarray(pts.xyz), np.asarray(pts.alive), tc)
+        t_build = time.perf_counter() - t0
+        rounds = run.point_rounds[1] - run.point_rounds[0] + 1  # after epochs first .. last, inclusive
+        rows.append({"stage": "host: tree rebuild (per round)", "batch": kind, "rays": r, "ms": 1e3 * t_build,
+                     "gflop": None, "gflop_per_s": None, "vs_matmul": None,
+                     "amortised_ms_per_step": 1e3 * t_build * rounds / (run.epochs * run.steps_per_epoch)})
+    one("render", rrays)
+    one("train", trays)
+    return {"matmul_gflop_per_s": peak / 1e9, "matmul_ms": 1e3 * t_mm, "tree_build_s": build_s,
+            "hit_share_image": hit_share, "rows": rows}
+
+
+def _child(path: str | None, repeats: int, quick: bool) -> dict:
+    env = dict(os.environ)
+    if path:
+        env["PYTHONPATH"] = path + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--whole-only", "--repeats", str(repeats)]
+    if quick:
+        cmd.append("--quick")
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=path or str(ROOT))
+    if res.returncode != 0:
+        raise RuntimeError(res.stderr[-4000:])
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def _pct(v):
+    return "" if v is None else f"{100 * v:.1f}%"
+
+
+def _fmt(v, spec):
+    return "" if v is None else format(v, spec)
+
+
+def write_md(report: dict, path: Path) -> None:
+    prof = report["profile"]
+    lines = [f"# Hot-path profile, `{CONFIG}` preset", "",
+             f"Commit {report['commit']} (reference {report['reference_commit']}), {report['device']}, "
+             f"jax {report['jax']}, {report['machine']['cpus']} CPUs.", "",
+             f"Command: `{report['command']}`", "",
+             f"Matmul (2048 x 2048 float32): {prof['matmul_gflop_per_s']:.1f} GFLOP/s.", "",
+             "| batch | stage | ms | share of whole | GFLOP | GFLOP/s | vs matmul |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    for r in prof["rows"]:
+        whole = next((x["ms"] for x in prof["rows"] if x["batch"] == r["batch"]
+                      and x["stage"] in ("whole render", "whole training step")), None)
+        share = "" if whole is None or r["stage"].startswith("whole") or r["stage"].startswith("host") \
+            else f"{100 * r['ms'] / whole:.0f}%"
+        lines.append(f"| {r['batch']} ({r['rays']} rays) | {r['stage']} | {r['ms']:.1f} | {share} | "
+                     f"{_fmt(r['gflop'], '.3f')} | {_fmt(r['gflop_per_s'], '.2f')} | "
+                     f"{_pct(r['vs_matmul'])} |")
+    lines += ["", "| code | render rays/s | train step rays/s | step loss |", "|---|---:|---:|---:|"]
+    for name in ("reference", "new"):
+        w = report["whole"][name]
+        lines.append(f"| {name} | {w['render_rays_per_s']:.0f} | {w['step_rays_per_s']:.0f} | {w['loss']:.6f} |")
+    rt = report["ratio"]
+    lines += ["", f"Ratio new / reference: render {rt['render']:.2f}x, training step {rt['step']:.2f}x.", ""]
+    path.write_text("\n".join(lines))
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--reference-path", default="/tmp/ne/prof_ref")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--rounds", type=int, default=2, help="whole measurements of each, the order alternating")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--whole-only", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--out-dir", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+    if args.whole_only:
+        print(json.dumps(measure_whole(args.repeats, args.quick)))
+        return
+    import jax
+
+    whole = {"reference": [], "new": []}
+    paths = {"reference": args.reference_path, "new": None}
+    for i in range(args.rounds):  # alternate the order, so load on the shared machine hits both alike
+        for name in (("reference", "new") if i % 2 == 0 else ("new", "reference")):
+            whole[name].append(_child(paths[name], args.repeats, args.quick))
+            print(name, whole[name][-1], flush=True)
+    best = {k: {**v[0], "render_rays_per_s": max(x["render_rays_per_s"] for x in v),
+                "step_rays_per_s": max(x["step_rays_per_s"] for x in v)} for k, v in whole.items()}
+    prof = profile_stages(args.repeats, args.quick)
+    report = {
+        "command": "python -m experiments.profile_hot_path" + (" --quick" if args.quick else ""),
+        "commit": _commit(ROOT), "reference_commit": _commit(Path(args.reference_path)), "config": CONFIG,
+        "device": str(jax.devices()[0]), "jax": jax.__version__,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "profile": prof, "whole": best, "whole_rounds": whole,
+        "ratio": {"render": best["new"]["render_rays_per_s"] / best["reference"]["render_rays_per_s"],
+                  "step": best["new"]["step_rays_per_s"] / best["reference"]["step_rays_per_s"]},
+    }
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    stem = "profile_hot_path" + ("_quick" if args.quick else "")
+    (args.out_dir / f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_md(report, args.out_dir / f"{stem}.md")
+    print((args.out_dir / f"{stem}.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
