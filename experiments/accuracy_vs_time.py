@@ -1,12 +1,12 @@
 """Accuracy against time for the renderer's numerical knobs (issue 7).
 
-    python experiments/accuracy_vs_time.py --study numerics           # part 1: a few minutes on 2 CPU cores
-    python experiments/accuracy_vs_time.py --study numerics --quick   # reduced sizes (the smoke test)
-    python experiments/accuracy_vs_time.py --study image --run RUN_DIR [--edit bend] [--scene DIR] [--quick]
+    python -m experiments.accuracy_vs_time --study numerics           # part 1: a few minutes on 2 CPU cores
+    python -m experiments.accuracy_vs_time --study numerics --quick   # reduced sizes (the smoke test)
+    python -m experiments.accuracy_vs_time --study image --run RUN_DIR [--edit bend] [--scene DIR] [--quick]
                                           [--test-views N] [--timing-passes P]
                                                                       # part 2: a trained model and its edit
                                                                       # (experiments/accuracy_vs_time_image.py)
-    python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
+    python -m experiments.accuracy_vs_time --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
                                           [--candidates full|short] [--train-only I ...] [--finished-only]
                                                                       # part 3: models trained with each setting
                                                                       # (experiments/accuracy_vs_time_training.py)
@@ -62,7 +62,6 @@ from scipy.special import erf
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-sys.path.insert(0, str(ROOT))
 
 RESULTS = HERE / "results"
 SHARED_NOTE = ("2 CPU cores shared with other jobs: timings are noisy (minimum over repeats, "
@@ -787,18 +786,6 @@ def run_numerics(sz: Sizes, out_dir: Path, command: str) -> dict:
     return res
 
 
-def _sibling(name: str):
-    """A script next to this one as a module (registered in ``sys.modules``: its dataclasses need it)."""
-    import importlib.util
-
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
-
-
 TRAINING_PRESETS = ("tiny", "default", "paper")
 
 
@@ -845,13 +832,13 @@ def main(argv=None) -> int:
         if args.scene is None and not args.summary_only:
             print("--study training needs a scene to train on: pass --scene DIR", file=sys.stderr)
             return 2
-        training = _sibling("accuracy_vs_time_training")
+        from experiments import accuracy_vs_time_training as training
         if args.summary_only:
             print(training.combined_markdown(training.rewrite_summary(args.out_dir, args.preset)))
             return 0
         runs = args.runs or Path("runs") / "avt_training" / args.scene.name
         cset = args.candidates or ("full" if args.preset == "tiny" else "short")
-        command = " ".join(["python experiments/accuracy_vs_time.py --study training --scene", str(args.scene),
+        command = " ".join(["python -m experiments.accuracy_vs_time --study training --scene", str(args.scene),
                             "--preset", args.preset, "--runs", str(runs), "--candidates", cset]
                            + (["--quick"] if args.quick else []) + (["--finished-only"] if args.finished_only else []))
         res = training.run_training(args.scene, runs, args.out_dir, command, preset=args.preset, quick=args.quick,
@@ -860,14 +847,14 @@ def main(argv=None) -> int:
             print(training.summary_markdown(res))
         return 0
     if args.study == "image":
-        image = _sibling("accuracy_vs_time_image")
+        from experiments import accuracy_vs_time_image as image
         if args.summary_only:
             image.rewrite_summary(args.out_dir, args.preset)
             return 0
         if args.run is None:
             print("--study image needs a trained model: pass --run RUN_DIR", file=sys.stderr)
             return 2
-        command = " ".join(["python experiments/accuracy_vs_time.py --study image --run", str(args.run)]
+        command = " ".join(["python -m experiments.accuracy_vs_time --study image --run", str(args.run)]
                            + ([f"--edit {args.edit}"] if args.edit != "bend" else [])
                            + ([f"--scene {args.scene}"] if args.scene else [])
                            + ([f"--test-views {args.test_views}"] if args.test_views else [])
@@ -885,7 +872,7 @@ def main(argv=None) -> int:
         atomic_write_json(args.out_dir / "accuracy_vs_time.json", res)
         atomic_write_text(args.out_dir / "accuracy_vs_time_numerics.md", summary_markdown(res))
         return 0
-    command = "python experiments/accuracy_vs_time.py --study numerics" + (" --quick" if args.quick else "")
+    command = "python -m experiments.accuracy_vs_time --study numerics" + (" --quick" if args.quick else "")
     run_numerics(Sizes.quick() if args.quick else Sizes.full(), args.out_dir, command)
     return 0
 

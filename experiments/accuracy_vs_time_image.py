@@ -1,6 +1,6 @@
 """Accuracy against time on images of a trained model and of its zero-shot edit (issue 7, part 2).
 
-    python experiments/accuracy_vs_time.py --study image --run RUN_DIR [--edit bend] [--scene DIR] [--quick]
+    python -m experiments.accuracy_vs_time --study image --run RUN_DIR [--edit bend] [--scene DIR] [--quick]
 
 From the model's own render config (the one it was trained with) one knob is changed at a time:
 samples per segment ``s`` (``samples_per_level`` scaled, at least 2), ``K`` (capped by the candidate
@@ -33,23 +33,18 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 import os
 import platform
-import re
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from experiments.common import ROOT, SHARED_NOTE, best_time, device_tag, timed_steps  # noqa: F401 (re-exported)
+from experiments.common import write_results as write_bench  # noqa: F401
 
-SHARED_NOTE = ("2 CPU cores shared with other jobs: timings are noisy (minimum over repeats, "
-               "compile excluded); ratios from one process are more reliable than absolute values")
+HERE = Path(__file__).resolve().parent
 
 KNOBS = {
     "own": "the model's own render config (the preset it was trained with)",
@@ -114,61 +109,6 @@ class Setting:
     cfg: object  # RenderConfig
     keep: float = 1.0
     time_only: bool = False
-
-
-def best_time(fn, repeats: int) -> tuple[float, float]:
-    """``(first_call_s, best_s)``: the first call (compiles) and the minimum of ``repeats`` more."""
-    import jax
-
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    best = math.inf
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return first, best
-
-
-def timed_steps(step, state, scene, batches) -> tuple:
-    """Run the jitted training ``step`` over ``batches`` (the first compiles): ``(state after, s per
-    step after the first, s of the first, lost)`` with ``lost = (overflow, dropped)`` summed over all
-    steps. The counts are read after the clock stops: a read each step would wait for the device."""
-    import jax
-
-    counts = []
-    t0 = time.perf_counter()
-    for i, batch in enumerate(batches):
-        state, m = step(state, scene, batch)
-        counts.append((m["overflow"], m["dropped"]))
-        if i == 0:
-            jax.block_until_ready(state.params)
-            first = time.perf_counter() - t0
-            t0 = time.perf_counter()
-    jax.block_until_ready(state.params)
-    per_step = (time.perf_counter() - t0) / max(1, len(batches) - 1)
-    lost = tuple(int(sum(int(c[j]) for c in counts)) for j in (0, 1))
-    return state, per_step, first, lost
-
-
-def device_tag() -> str:
-    """``cpu``, or the accelerator JAX runs on as a file-name part (``nvidia_h100_80gb_hbm3``): benchmarks
-    name their results after it, so a GPU's timings never overwrite the CPU's."""
-    import jax
-
-    dev = jax.devices()[0]
-    return "cpu" if dev.platform == "cpu" else re.sub(r"[^a-z0-9]+", "_", dev.device_kind.lower()).strip("_")
-
-
-def write_bench(out_dir: Path, stem: str, res: dict, md: str) -> None:
-    """``<out_dir>/<stem>.json`` and ``.md`` (each written whole or not at all), then the table printed."""
-    from ne_jax.atomic import atomic_write_json, atomic_write_text
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out_dir / f"{stem}.json", res)
-    atomic_write_text(out_dir / f"{stem}.md", md)
-    print(md)
 
 
 def _scaled_samples(spl: tuple[int, ...], f: float) -> tuple[int, ...]:

@@ -1,7 +1,7 @@
 """Accuracy against time for models *trained* with each setting, and the preset chosen from the front
 (issue 7, part 3).
 
-    python experiments/accuracy_vs_time.py --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
+    python -m experiments.accuracy_vs_time --study training --scene DIR [--preset tiny] [--runs DIR] [--quick]
         [--candidates full|short] [--train-only I [I ...]] [--finished-only]
 
 The image study (part 2) changes render settings of one trained model; settings judged that way do
@@ -44,11 +44,10 @@ import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
+from experiments.accuracy_vs_time_image import _scaled_samples, pareto_front
+from experiments.common import SHARED_NOTE, best_time
 
-from accuracy_vs_time_image import SHARED_NOTE, _scaled_samples, best_time, pareto_front  # noqa: E402
+HERE = Path(__file__).resolve().parent
 
 from ne_jax.config_json import config_key  # noqa: E402
 

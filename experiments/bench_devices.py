@@ -1,8 +1,8 @@
 """One host device against one per core: the ``tiny`` preset's training step and a test-image render,
 timed in one run.
 
-    python experiments/bench_devices.py                   # 1 device, one per core, two per core
-    python experiments/bench_devices.py --rounds 1 --extra 0
+    python -m experiments.bench_devices                   # 1 device, one per core, two per core
+    python -m experiments.bench_devices --rounds 1 --extra 0
 
 ``import ne_jax`` gives JAX one host device per usable core (``ne_jax/_platform.py``) and the rays
 split over them; ``NE_JAX_HOST_DEVICES=1`` opts out. The device count is fixed per process, so
@@ -139,7 +139,6 @@ def main(argv=None) -> None:
     if args.worker:
         print(json.dumps(worker(args.steps, args.res, args.repeats)))
         return
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
     from ne_jax._platform import ENV, usable_cores
 
     cores = usable_cores()
@@ -167,7 +166,7 @@ def main(argv=None) -> None:
         one = next(b for b in rows if b["round"] == r["round"] and b["setting"] == "1")
         r["train_speedup"] = round(one["train_s_per_step"] / r["train_s_per_step"], 2)
         r["render_speedup"] = round(one["render_s"] / r["render_s"], 2)
-    command = "python experiments/bench_devices.py " + " ".join(
+    command = "python -m experiments.bench_devices " + " ".join(
         f"--{k} {v}" for k, v in vars(args).items() if k != "worker")
     modified = provenance.modified()
     dirty = bool(modified)

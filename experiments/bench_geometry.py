@@ -21,9 +21,9 @@ bare ``cKDTree(points)`` and against the previous build (``tests/geometry/refere
 
 Usage::
 
-    .venv/bin/python experiments/bench_geometry.py            # N = 1e4, 1e5, 1e6, 2e6
-    .venv/bin/python experiments/bench_geometry.py --quick    # N = 1e4, 3e4 (smoke test)
-    .venv/bin/python experiments/bench_geometry.py --build    # the build alone (bench_geometry_build.json)
+    .venv/bin/python -m experiments.bench_geometry            # N = 1e4, 1e5, 1e6, 2e6
+    .venv/bin/python -m experiments.bench_geometry --quick    # N = 1e4, 3e4 (smoke test)
+    .venv/bin/python -m experiments.bench_geometry --build    # the build alone (bench_geometry_build.json)
 
 Prints a Markdown table and writes ``experiments/results/bench_geometry.json``
 (``bench_geometry_build.json`` with ``--build``).
@@ -44,7 +44,6 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 
 def surface_cloud(n: int, seed: int = 0) -> np.ndarray:
@@ -253,10 +252,9 @@ def build_case(args) -> dict:
     name, repeat = args
     from scipy.spatial import cKDTree
 
-    sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests"))
     from ne_jax.geometry import KDTreeConfig, build_tree
 
-    from geometry.reference import build_tree_reference
+    from tests.geometry.reference import build_tree_reference
 
     kind, n, depth = BUILD_CASES[name]
     xyz = surface_cloud(n) if kind == "surface" else np.random.default_rng(0).uniform(-1, 1, (n, 3)).astype(np.float32)
@@ -316,7 +314,7 @@ def build_main(args):
     print(md)
 
     meta = {
-        "command": "python experiments/bench_geometry.py --build"
+        "command": "python -m experiments.bench_geometry --build"
         + (f" --repeat {args.repeat}" if args.repeat != 3 else "")
         + (" --cases " + " ".join(args.cases) if args.cases else ""),
         "commit": provenance.commit(),
@@ -389,7 +387,7 @@ def main(argv=None):
     import jax
 
     meta = {
-        "command": "python experiments/bench_geometry.py" + (" --quick" if args.quick else ""),
+        "command": "python -m experiments.bench_geometry" + (" --quick" if args.quick else ""),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__},
         "rows": rows,
         "jit_vs_host": jvh,

@@ -1,6 +1,6 @@
 """What each training preset costs per step and per image on this machine, on one trained cloud.
 
-    python experiments/bench_presets.py --run RUN_DIR [--scene DIR] [--steps 20] [--repeats 3]
+    python -m experiments.bench_presets --run RUN_DIR [--scene DIR] [--steps 20] [--repeats 3]
                                         [--settings LABEL ...] [--quick]
 
 The presets differ in what a step renders (K, candidates, levels, samples per segment, the tree's
@@ -41,10 +41,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
 
-from accuracy_vs_time_image import best_time, device_tag, timed_steps, write_bench  # noqa: E402
+from experiments.common import best_time, device_tag, timed_steps  # noqa: E402
+from experiments.common import write_results as write_bench  # noqa: E402
 
 REFERENCE = "default"
 
@@ -199,7 +198,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"--steps: expected at least 1, found {args.steps}")
     res = run_bench(args.run, args.scene, 2 if args.quick else args.steps, 1 if args.quick else args.repeats,
                     args.quick, log=lambda s: print(s, file=sys.stderr, flush=True), only=args.settings)
-    res["command"] = "python experiments/bench_presets.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    res["command"] = "python -m experiments.bench_presets " + " ".join(argv if argv is not None else sys.argv[1:])
     write_bench(args.out_dir, f"bench_presets_{device_tag()}", res, markdown(res))
     return 0
 

@@ -1,7 +1,7 @@
 """Rendering throughput per preset, and what each declared effect costs.
 
-    python experiments/bench_render.py            # all presets and effects (several minutes on CPU)
-    python experiments/bench_render.py --quick    # small cloud, tiny + default only
+    python -m experiments.bench_render            # all presets and effects (several minutes on CPU)
+    python -m experiments.bench_render --quick    # small cloud, tiny + default only
 
 A randomly initialised model on the surface samples of the ``glossy`` benchmark scene (the effects
 cost the same whatever the weights), 100x100 images from the test orbit. For each setting: compile
@@ -115,7 +115,7 @@ def main(argv=None) -> None:
 
     device = str(jax.devices()[0])
     report = {
-        "command": "python experiments/bench_render.py" + (" --quick" if args.quick else ""),
+        "command": "python -m experiments.bench_render" + (" --quick" if args.quick else ""),
         "device": device,
         "jax": jax.__version__,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},

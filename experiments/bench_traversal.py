@@ -1,6 +1,6 @@
 """The two-pass traversal against one pass at full width, on a trained model's cloud and test views.
 
-    python experiments/bench_traversal.py --run RUN_DIR [--scene DIR] [--views 5] [--train-steps 50] [--quick]
+    python -m experiments.bench_traversal --run RUN_DIR [--scene DIR] [--views 5] [--train-steps 50] [--quick]
 
 A ray walks the K-D tree level by level with a frontier of ``frontier_capacity`` nodes, and the
 cost follows that width; most rays of a surface-like cloud need far fewer nodes per level. With
@@ -39,10 +39,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
 
-from accuracy_vs_time_image import best_time, device_tag, timed_steps, write_bench  # noqa: E402
+from experiments.common import best_time, device_tag, timed_steps  # noqa: E402
+from experiments.common import write_results as write_bench  # noqa: E402
 
 
 def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
@@ -186,7 +185,7 @@ def main(argv=None) -> int:
     res = run_bench(args.run, args.scene, 1 if args.quick else args.views, 1 if args.quick else args.repeats,
                     args.quick, min(args.train_steps, 2) if args.quick else args.train_steps,
                     log=lambda s: print(s, file=sys.stderr, flush=True))
-    res["command"] = "python experiments/bench_traversal.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    res["command"] = "python -m experiments.bench_traversal " + " ".join(argv if argv is not None else sys.argv[1:])
     tag = device_tag()
     write_bench(args.out_dir, "bench_traversal" if tag == "cpu" else f"bench_traversal_{tag}", res, markdown(res))
     return 0

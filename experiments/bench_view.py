@@ -11,8 +11,8 @@
 
 Writes ``experiments/results/bench_view.{json,md}``::
 
-    python experiments/bench_view.py --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
-    python experiments/bench_view.py                    # trains one first (tiny blocks, a few minutes)
+    python -m experiments.bench_view --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
+    python -m experiments.bench_view                    # trains one first (tiny blocks, a few minutes)
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
@@ -133,7 +132,6 @@ def _edit_100k(model, n: int, size: int) -> dict:
 
 
 def main(argv=None) -> None:
-    sys.path.insert(0, str(ROOT))
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", default=None, help="a tiny model's run directory (default: train one in --work)")
     ap.add_argument("--work", default="outputs/bench_view", help="where a model is trained when --run is not given")
@@ -158,7 +156,7 @@ def main(argv=None) -> None:
         print(row, flush=True)
     edit = _edit_100k(model, args.points, args.size)
     print(edit, flush=True)
-    command = "python experiments/bench_view.py" + (" --run RUN" if args.run else "") + \
+    command = "python -m experiments.bench_view" + (" --run RUN" if args.run else "") + \
         f" --size {args.size} --frames {args.frames} --points {args.points}"
     modified = provenance.modified()
     report = {"what": "ne-jax view: frames/s of a tiny model and a select+move+re-render on a resampled cloud",

@@ -20,7 +20,7 @@ the empty background is noise-free in every renderer).
 
 Outputs: ``experiments/results/compare_renderers.{json,md,png}``.  Run from the repository root::
 
-    .venv/bin/python experiments/compare_renderers.py
+    .venv/bin/python -m experiments.compare_renderers
 
 ``--quick`` renders tiny images at low spp to check the script in seconds.
 """

@@ -1,7 +1,7 @@
 """Two training runs side by side: are their final models the same array for array, and what did
 each take?
 
-    python experiments/compare_runs.py RUN_A RUN_B
+    python -m experiments.compare_runs RUN_A RUN_B
 
 Loads the latest checkpoint of each run directory (as ``ne-jax eval`` does) and prints, per array of
 the parameters and of the point cloud, the largest absolute difference (``shape`` when the shapes

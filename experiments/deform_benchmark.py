@@ -1,9 +1,9 @@
 """The deformation benchmark (paper Table 1 layout): every scene x every edit x every variant,
 zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
 
-    python experiments/deform_benchmark.py --preset tiny --runs runs/deform          # main variants
-    python experiments/deform_benchmark.py --preset tiny --runs runs/deform --variants all
-    python experiments/deform_benchmark.py --scenes glossy --edits bend --no-finetune  # a quick look
+    python -m experiments.deform_benchmark --preset tiny --runs runs/deform          # main variants
+    python -m experiments.deform_benchmark --preset tiny --runs runs/deform --variants all
+    python -m experiments.deform_benchmark --scenes glossy --edits bend --no-finetune  # a quick look
 
 For each scene: the full model and every variant that needs its own model are trained with the
 preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``: a finished run is reused), then
@@ -180,7 +180,7 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
         "background": full.background, "seconds": round(seconds, 1), "records": records,
         "unedited": unedited, "commit": commit(short=True),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-        "command": "python experiments/deform_benchmark.py " + " ".join(
+        "command": "python -m experiments.deform_benchmark " + " ".join(
             f"--{k.replace('_', '-')}" + ("" if v is True else f" {' '.join(v) if isinstance(v, list) else v}")
             for k, v in vars(args).items()
             if v not in (None, False) and k not in ("runs", "root")

@@ -12,7 +12,7 @@ cameras (:mod:`ne_jax.edit.fidelity`). Two tables per model:
   frames), the exact KNN instead of candidate sets, normals and ISTs (re-estimated, or moved exactly),
   the IST's filling and smoothing, and the IST effect off.
 
-    python experiments/equivariance.py --runs RUN [RUN ...] [--views 4] [--diagnose] [--out NAME]
+    python -m experiments.equivariance --runs RUN [RUN ...] [--views 4] [--diagnose] [--out NAME]
 
 Writes ``experiments/results/<NAME>.json`` and ``.md`` (default ``equivariance``).
 """
@@ -164,7 +164,7 @@ def main(argv=None) -> None:
     parser.add_argument("--diagnose", action="store_true", help="also the stage-by-stage diagnosis")
     parser.add_argument("--out", default="equivariance", help="results file stem")
     args = parser.parse_args(argv)
-    command = ("python experiments/equivariance.py --runs " + " ".join(Path(r).name for r in args.runs)
+    command = ("python -m experiments.equivariance --runs " + " ".join(Path(r).name for r in args.runs)
                + f" --views {args.views}" + (" --diagnose" if args.diagnose else "") + f" --out {args.out}")
     results = []
     for run_dir in args.runs:

@@ -1,7 +1,7 @@
 """Initial point clouds by visual-hull carving on the benchmark scenes: accuracy and time.
 
-    python experiments/initial_cloud.py                 # generate the tiny benchmark in a temp dir
-    python experiments/initial_cloud.py --root DIR      # use an existing benchmark preset directory
+    python -m experiments.initial_cloud                 # generate the tiny benchmark in a temp dir
+    python -m experiments.initial_cloud --root DIR      # use an existing benchmark preset directory
 
 For each scene: carve the training views' masks (with and without snapping onto the hull, and
 with 5 photo-consistency sweeps),

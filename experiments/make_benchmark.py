@@ -1,8 +1,8 @@
 """Generate the procedural editing benchmark and measure how long each preset takes.
 
-    python experiments/make_benchmark.py                      # tiny and default presets
-    python experiments/make_benchmark.py --presets tiny       # just tiny
-    python experiments/make_benchmark.py --preset tiny_pt --out DIR   # the path-traced tiny set (Mitsuba 3)
+    python -m experiments.make_benchmark                      # tiny and default presets
+    python -m experiments.make_benchmark --presets tiny       # just tiny
+    python -m experiments.make_benchmark --preset tiny_pt --out DIR   # the path-traced tiny set (Mitsuba 3)
 
 Writes the scenes to ``--out/<preset>/``, the contact sheet of each preset to
 ``experiments/results/benchmark_contact_sheet_<preset>.png`` and the timings to
@@ -66,7 +66,7 @@ def main(argv=None) -> None:
             "contact_sheet": str(sheet.relative_to(RESULTS.parent.parent)),
             "seed": args.seed,
             "commit": commit(),
-            "command": "python experiments/make_benchmark.py --presets " + name
+            "command": "python -m experiments.make_benchmark --presets " + name
                        + (f" --scenes {' '.join(args.scenes)}" if args.scenes else ""),
         }
         print(f"benchmark[{name}]: {images} images in {report['seconds']:.1f} s "

@@ -1,7 +1,7 @@
 """Speed and quality of the K-D-tree matching (:func:`ne_jax.morph.matching.kd_match`).
 
-    python experiments/morph_matching_benchmark.py            # sizes 2^10 .. 2^20
-    python experiments/morph_matching_benchmark.py --quick    # up to 2^16
+    python -m experiments.morph_matching_benchmark            # sizes 2^10 .. 2^20
+    python -m experiments.morph_matching_benchmark --quick    # up to 2^16
 
 Two clouds of different shapes (a unit cube's volume and a Gaussian blob) at each size ``N``:
 
@@ -20,7 +20,6 @@ import argparse
 import functools
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
@@ -28,9 +27,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ne_jax.atomic import atomic_write_json, atomic_write_text  # noqa: E402
-from ne_jax.morph.matching import kd_match  # noqa: E402
+from ne_jax.atomic import atomic_write_json, atomic_write_text
+from ne_jax.morph.matching import kd_match
 
 from tests.morph.test_matching import reference_match  # noqa: E402
 
@@ -70,7 +68,7 @@ def main(argv=None) -> None:
         print(row, flush=True)
     report = {"what": "K-D-tree matching of a unit cube's volume and a Gaussian blob (sigma 0.3), N points each",
               "rows": rows,
-              "command": "python experiments/morph_matching_benchmark.py" + (" --quick" if args.quick else ""),
+              "command": "python -m experiments.morph_matching_benchmark" + (" --quick" if args.quick else ""),
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}}
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / "morph_matching.json", report)

@@ -1,7 +1,7 @@
 """Scene morphing between two trained benchmark scenes, ours vs the PointNeRF-like variant, with the
 smoothness figures of :func:`ne_jax.morph.render.smoothness` (the paper judged morphs by eye only).
 
-    python experiments/morph_study.py --runs runs/deform --a glossy --b stool
+    python -m experiments.morph_study --runs runs/deform --a glossy --b stool
 
 Models are the deformation benchmark's (``<runs>/<scene>/models/<name>``: trained here if missing, with
 the preset's run config, or reused). Both variants morph along the same kind of path (straight lines
@@ -73,7 +73,7 @@ def main(argv=None) -> None:
         print(f"{v:>15}: frame-to-frame change mean {sm['mean']:.4f} max {sm['max']:.4f}, "
               f"path ratio {sm['path_ratio']:.2f} ({report['seconds']:.0f} s)", flush=True)
 
-    command = (f"python experiments/morph_study.py --runs DIR --a {args.a} --b {args.b} --steps {args.steps} "
+    command = (f"python -m experiments.morph_study --runs DIR --a {args.a} --b {args.b} --steps {args.steps} "
                f"--view {args.view}")
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / f"{name}.json", {

@@ -13,8 +13,8 @@ per image; on an idle machine: the CPU time spread over every core).
 
 Outputs ``experiments/results/pathtraced_noise.{json,md}``. Run from the repository root::
 
-    .venv/bin/python experiments/pathtraced_noise.py                       # tiny_pt and default_pt at 64, 256 spp
-    .venv/bin/python experiments/pathtraced_noise.py --presets tiny_pt --spp 16 --scenes cup   # seconds
+    .venv/bin/python -m experiments.pathtraced_noise                       # tiny_pt and default_pt at 64, 256 spp
+    .venv/bin/python -m experiments.pathtraced_noise --presets tiny_pt --spp 16 --scenes cup   # seconds
 """
 
 from __future__ import annotations
@@ -102,7 +102,7 @@ def main(argv=None) -> int:
     mi = P.import_mitsuba()
     load_before = os.getloadavg()
     t_all = time.perf_counter()
-    command = "python experiments/pathtraced_noise.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python -m experiments.pathtraced_noise " + " ".join(sys.argv[1:] if argv is None else argv)
     report = {"commit": commit(), "modified": modified("ne_jax", "experiments/pathtraced_noise.py"),
               "command": command.strip(),
               "mitsuba": {"version": mi.__version__, "variant": P.VARIANT, "sampler": P.SAMPLER,

@@ -8,8 +8,8 @@ views and pixels) the angle is recovered by gradient descent through the differe
 editing (positions, IST under a fixed plan) and the renderer (:mod:`ne_jax.edit.differentiable`),
 with the plan and the K-D tree rebuilt at the current estimate every few steps.
 
-    .venv/bin/python experiments/recover_bend.py                      # tiny benchmark + training if needed
-    .venv/bin/python experiments/recover_bend.py --run /tmp/tb/runs/glossy --bench /tmp/bench
+    .venv/bin/python -m experiments.recover_bend                      # tiny benchmark + training if needed
+    .venv/bin/python -m experiments.recover_bend --run /tmp/tb/runs/glossy --bench /tmp/bench
 
 Writes ``experiments/results/recover_bend.json`` and ``recover_bend.png`` (angle and loss vs step).
 """
@@ -163,7 +163,7 @@ def main(argv=None) -> dict:
           f"loss {traj.loss[0]:.6f} -> {traj.loss[-1]:.6f} (at the true angle {float(loss_true):.6f}); "
           f"compilations during the descent: {traj.compiles}")
     print(f"wrote {out_json} and {out_png}")
-    print(f"re-run: .venv/bin/python experiments/recover_bend.py --run {run_dir} --bench {args.bench}")
+    print(f"re-run: .venv/bin/python -m experiments.recover_bend --run {run_dir} --bench {args.bench}")
     return result
 
 

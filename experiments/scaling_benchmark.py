@@ -1,8 +1,8 @@
 """Throughput on 1, 2 and 4 devices (rays split over a device mesh, :mod:`ne_jax.devices`), and the
 memory per ray and per point.
 
-    python experiments/scaling_benchmark.py                 # 1, 2, 4 forced host devices (CPU)
-    python experiments/scaling_benchmark.py --devices 1 8   # other counts
+    python -m experiments.scaling_benchmark                 # 1, 2, 4 forced host devices (CPU)
+    python -m experiments.scaling_benchmark --devices 1 8   # other counts
 
 Each device count runs in its own process (``XLA_FLAGS=--xla_force_host_platform_device_count=N``
 must be set before JAX starts) on the same randomly initialised model (a tiny-preset colour model,
@@ -142,7 +142,7 @@ def main(argv=None) -> None:
     for r in rows:
         r["render_speedup"] = round(r["render_rays_per_s"] / base["render_rays_per_s"], 2)
         r["train_speedup"] = round(r["train_rays_per_s"] / base["train_rays_per_s"], 2)
-    command = "python experiments/scaling_benchmark.py " + " ".join(
+    command = "python -m experiments.scaling_benchmark " + " ".join(
         f"--{k} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in vars(args).items() if k != "worker")
     report = {"what": "render and training throughput with rays split over N devices; memory per ray and point",
               "rows": rows, "command": command,

@@ -1,9 +1,9 @@
 """Training on the benchmark scenes: test PSNR/SSIM, wall time and point-cloud accuracy.
 
-    python experiments/train_benchmark.py --preset tiny                  # tiny scenes, RunConfig.tiny
-    python experiments/train_benchmark.py --preset default --scenes glossy --epochs 4
-    python experiments/train_benchmark.py --root DIR ...                 # an existing benchmark folder
-    python experiments/train_benchmark.py --preset default --root DIR --runs RUNS --resume  # continue stopped runs
+    python -m experiments.train_benchmark --preset tiny                  # tiny scenes, RunConfig.tiny
+    python -m experiments.train_benchmark --preset default --scenes glossy --epochs 4
+    python -m experiments.train_benchmark --root DIR ...                 # an existing benchmark folder
+    python -m experiments.train_benchmark --preset default --root DIR --runs RUNS --resume  # continue stopped runs
 
 For every scene: generate it (unless ``--root``), train with the preset's :class:`RunConfig`
 (initial cloud by visual-hull carving), evaluate the test views (full images on the run's
@@ -151,7 +151,7 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
     results.mkdir(parents=True, exist_ok=True)
     atomic_write_json(results / f"train_benchmark_{preset}.json", report)
     lines = [f"Preset `{preset}`: {run.epochs} epochs x {run.steps_per_epoch} steps of {run.sampler.batch_size} "
-             f"rays; `python experiments/train_benchmark.py --preset {preset}`.", "",
+             f"rays; `python -m experiments.train_benchmark --preset {preset}`.", "",
              "| scene | test PSNR (dB) | test SSIM | train time (s) | points initial -> final | "
              "Chamfer initial -> final | ratio | seen-surface Chamfer initial -> final | ratio |",
              "|---|---:|---:|---:|---|---|---:|---|---:|"]

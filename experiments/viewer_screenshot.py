@@ -2,7 +2,7 @@
 in headless Chromium (selenium), a full-resolution frame awaited, points selected with the page's
 button, and the window saved.
 
-    python experiments/viewer_screenshot.py --run RUN [--out docs/images/viewer.png]
+    python -m experiments.viewer_screenshot --run RUN [--out docs/images/viewer.png]
 
 Needs the ``view`` and ``test`` extras (viser, selenium) and Debian's ``chromium`` + ``chromium-driver``.
 """

@@ -1,30 +1,22 @@
-"""Smoke test of ``experiments/accuracy_vs_time.py --study numerics`` at reduced sizes: the output
+"""Smoke test of ``python -m experiments.accuracy_vs_time --study numerics`` at reduced sizes: the output
 files and their schema, and monotone sanity of the numbers (no claim about timings beyond > 0)."""
 
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
+import importlib
 import itertools
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "accuracy_vs_time.py"
-
 
 def _load(name: str = "accuracy_vs_time"):
-    """``experiments/<name>.py`` as a module (registered in ``sys.modules``: dataclasses need that)."""
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, SCRIPT.parent / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
+    """The module ``experiments.<name>``."""
+    return importlib.import_module(f"experiments.{name}")
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +169,7 @@ def test_image_study_files_and_schema(image_run):
     assert all(t["split"].startswith(f"test ({views} views") for t in res["targets"])
     from ne_jax.train.run import load_run_config
 
-    image = sys.modules["accuracy_vs_time_image"]  # loaded by main
+    image = _load("accuracy_vs_time_image")
     own = load_run_config(run_dir).render
     for t in res["targets"]:
         rows = t["rows"]
@@ -212,7 +204,7 @@ def test_image_study_summary_only_rewrites_the_presets_files(image_run, capsys):
 
 def test_evenly_spaced_views():
     _load()
-    image = sys.modules["accuracy_vs_time_image"]
+    image = _load("accuracy_vs_time_image")
     assert image.evenly_spaced(20, 5) == [0, 5, 10, 14, 19]
     assert image.evenly_spaced(3, None) == image.evenly_spaced(3, 7) == [0, 1, 2]
     assert image.evenly_spaced(9, 1) == [0]
@@ -233,7 +225,7 @@ def test_image_frontier_settings_change_only_the_frontier():
 
 
 def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_path):
-    """experiments/bench_traversal.py --quick on the smoke-test model: the two-pass walk gives the
+    """``python -m experiments.bench_traversal --quick`` on the smoke-test model: the two-pass walk gives the
     reference's segments, pixels and (after 2 training steps) parameters exactly."""
     bench = _load("bench_traversal")
     _, _, run_dir = image_run
@@ -249,7 +241,7 @@ def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_pa
 
 
 def test_bench_presets_quick(image_run, tmp_path):
-    """experiments/bench_presets.py --quick on the smoke-test model: one row per preset measured, the
+    """``python -m experiments.bench_presets --quick`` on the smoke-test model: one row per preset measured, the
     ratios against ``default``, the projection from the measured step, and clear refusals."""
     bench = _load("bench_presets")
     _, _, run_dir = image_run
@@ -272,7 +264,7 @@ def test_bench_presets_quick(image_run, tmp_path):
 
 
 def test_compare_runs_same_and_different(image_run, tmp_path, capsys):
-    """experiments/compare_runs.py: a run against a copy of itself is equal bit for bit (exit 0); a
+    """``python -m experiments.compare_runs``: a run against a copy of itself is equal bit for bit (exit 0); a
     copy whose checkpoint holds other parameters is not (exit 1)."""
     import shutil
 
@@ -311,7 +303,7 @@ def test_image_study_sanity(image_run):
 
 def _training():
     _load()
-    return sys.modules["accuracy_vs_time"]._sibling("accuracy_vs_time_training")
+    return _load("accuracy_vs_time_training")
 
 
 def test_training_study_needs_a_scene(capsys):

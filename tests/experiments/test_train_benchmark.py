@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+
+from experiments import train_benchmark
 
 from tests.mini_presets import TRAIN_SCENE
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "train_benchmark.py"
-
 
 def _load():
-    spec = importlib.util.spec_from_file_location("train_benchmark", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return train_benchmark
 
 
 def test_runs_holding_a_run_need_resume(tmp_path, capsys):

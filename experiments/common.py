@@ -1,0 +1,90 @@
+"""What the experiment modules share: paths, provenance, timing and writing results."""
+
+from __future__ import annotations
+
+import math
+import re
+import shlex
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+"""The repository root."""
+RESULTS = ROOT / "experiments" / "results"
+"""Where results files go by default."""
+SHARED_NOTE = ("2 CPU cores shared with other jobs: timings are noisy (minimum over repeats, "
+               "compile excluded); ratios from one process are more reliable than absolute values")
+
+
+def commit(paths: tuple[str, ...] = ("ne_jax",)) -> str:
+    """Short ``HEAD`` commit, with `` (<paths> modified)`` when tracked files under ``paths`` differ."""
+    from ne_jax import provenance
+
+    head = provenance.commit(short=True)
+    return head + (f" ({', '.join(paths)} modified)" if provenance.modified(*paths) else "")
+
+
+def command(module: str, argv: list[str] | None = None) -> str:
+    """The command that re-runs ``experiments.<module>`` with ``argv`` (default: this process's)."""
+    name = module.rsplit(".", 1)[-1]
+    args = sys.argv[1:] if argv is None else argv
+    return " ".join(["python", "-m", f"experiments.{name}", *map(shlex.quote, args)])
+
+
+def best_time(fn, repeats: int) -> tuple[float, float]:
+    """``(first_call_s, best_s)``: the first call (compiles) and the minimum of ``repeats`` more."""
+    import jax
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    best = math.inf
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - t0)
+    return first, best
+
+
+def timed_steps(step, state, scene, batches) -> tuple:
+    """Run the jitted training ``step`` over ``batches`` (the first compiles): ``(state after, s per
+    step after the first, s of the first, lost)`` with ``lost = (overflow, dropped)`` summed over all
+    steps. The counts are read after the clock stops: a read each step would wait for the device."""
+    import jax
+
+    counts = []
+    t0 = time.perf_counter()
+    for i, batch in enumerate(batches):
+        state, m = step(state, scene, batch)
+        counts.append((m["overflow"], m["dropped"]))
+        if i == 0:
+            jax.block_until_ready(state.params)
+            first = time.perf_counter() - t0
+            t0 = time.perf_counter()
+    jax.block_until_ready(state.params)
+    per_step = (time.perf_counter() - t0) / max(1, len(batches) - 1)
+    lost = tuple(int(sum(int(c[j]) for c in counts)) for j in (0, 1))
+    return state, per_step, first, lost
+
+
+def device_tag() -> str:
+    """``cpu``, or the accelerator JAX runs on as a file-name part (``nvidia_h100_80gb_hbm3``): benchmarks
+    name their results after it, so a GPU's timings never overwrite the CPU's."""
+    import jax
+
+    dev = jax.devices()[0]
+    return "cpu" if dev.platform == "cpu" else re.sub(r"[^a-z0-9]+", "_", dev.device_kind.lower()).strip("_")
+
+
+def write_results(out_dir: Path, stem: str, res: dict, md: str, echo: bool = True) -> None:
+    """``<out_dir>/<stem>.json`` and ``.md``, each written whole or not at all; ``md`` printed with ``echo``.
+
+    ``res`` should carry ``commit``, ``command`` and the config key(s) it measured."""
+    from ne_jax.atomic import atomic_write_json, atomic_write_text
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out_dir / f"{stem}.json", res)
+    atomic_write_text(out_dir / f"{stem}.md", md)
+    if echo:
+        print(md)
