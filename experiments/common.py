@@ -80,11 +80,20 @@ def device_tag() -> str:
 def write_results(out_dir: Path, stem: str, res: dict, md: str, echo: bool = True) -> None:
     """``<out_dir>/<stem>.json`` and ``.md``, each written whole or not at all; ``md`` printed with ``echo``.
 
-    ``res`` should carry ``commit``, ``command`` and the config key(s) it measured."""
+    ``res`` should carry ``command`` and the config key(s) it measured; ``commit`` is added if missing."""
     from ne_jax.atomic import atomic_write_json, atomic_write_text
 
+    res.setdefault("commit", commit())
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / f"{stem}.json", res)
     atomic_write_text(out_dir / f"{stem}.md", md)
     if echo:
         print(md)
+
+
+def cached_run(run, scene_dir: Path, run_dir: Path):
+    """The model ``run`` trains on ``scene_dir`` in ``run_dir``: trained there if not finished yet,
+    else loaded at once (``train`` resumes a finished run by returning it)."""
+    from ne_jax.train.loop import train
+
+    return train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)

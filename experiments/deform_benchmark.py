@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.common import cached_run
 from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.generate import generate_benchmark, get_preset
@@ -40,7 +41,6 @@ from ne_jax.edit.apply import EditConfig
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.eval import evaluate_model
 from ne_jax.provenance import commit
-from ne_jax.train.loop import train
 from ne_jax.train.model import TrainedModel
 from ne_jax.train.run import get_run_preset
 
@@ -57,7 +57,7 @@ def score(model: TrainedModel, variant, scene_dir: Path) -> tuple[dict, np.ndarr
 
 def trained_model(run, scene_dir: Path, run_dir: Path, log) -> TrainedModel:
     t0 = time.perf_counter()
-    model = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
+    model = cached_run(run, scene_dir, run_dir)
     log(f"  model {run.name}: {time.perf_counter() - t0:.0f} s (cached runs return at once)")
     return model
 

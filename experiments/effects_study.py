@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import argparse
 import platform
-import subprocess
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from ne_jax import provenance
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
@@ -32,9 +32,7 @@ SCENES = ("glossy", "cup", "stool", "blocks")
 
 
 def _commit() -> str:
-    root = Path(__file__).resolve().parent.parent
-    out = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True, text=True)
-    return out.stdout.strip()
+    return provenance.commit(short=True)
 
 
 def measure(preset: str, scene_dir: Path, spec: str, run_dir: Path) -> dict:

@@ -10,12 +10,12 @@ Writes ``experiments/results/<out>.{json,md,png}``.
 from __future__ import annotations
 
 import argparse
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 
+from experiments.common import commit as _commit
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import composite, load_split
@@ -27,11 +27,6 @@ from ne_jax.train.model import load_trained
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def _commit() -> str:
-    root = Path(__file__).resolve().parent.parent
-    head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True, text=True)
-    dirty = subprocess.run(["git", "status", "--porcelain", "--", "ne_jax"], cwd=root, capture_output=True, text=True)
-    return head.stdout.strip() + (" (ne_jax modified)" if dirty.stdout.strip() else "")
 
 
 def measure(label: str, run_dir: Path, scene_dir: Path, view: int) -> tuple[dict, np.ndarray]:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.common import cached_run
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.benchmark.generate import generate_benchmark, get_preset
 from ne_jax.benchmark.scenes import SCENES
@@ -27,7 +28,6 @@ from ne_jax.benchmark.variants import get_variant, variant_run
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.png import write_image
 from ne_jax.morph import MorphSettings, morph_models, strip
-from ne_jax.train.loop import train
 from ne_jax.train.model import TrainedModel, load_trained
 from ne_jax.train.run import get_run_preset
 
@@ -37,7 +37,7 @@ VARIANTS = ("full", "pointnerf_like")
 
 def model_for(runs: Path, root: Path, scene: str, run) -> TrainedModel:
     run_dir = runs / scene / "models" / run.name
-    train(run, root / scene, run_dir, resume=True, progress=False, log=lambda s: None)  # returns at once if done
+    cached_run(run, root / scene, run_dir)
     return load_trained(run_dir)
 
 
