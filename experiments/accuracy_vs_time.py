@@ -440,9 +440,10 @@ def render_worker(dtype_name: str, sz: Sizes, model_npz: str, out_npz: str) -> N
     pts = pts.replace(conf_logit=jnp.full(pts.conf_logit.shape, 2.0, dtype))
     from ne_jax.train.run import get_run_preset
 
-    cfg = get_run_preset(sz.render_preset).render
+    preset = get_run_preset(sz.render_preset)
+    cfg = preset.render
     t0 = time.perf_counter()
-    scene = PointScene.build(pts, cfg)
+    scene = PointScene.build(pts, cfg, preset.capacities)
     build_s = time.perf_counter() - t0
     treedef = jax.tree_util.tree_structure(jax.eval_shape(lambda: init_color_model(cfg.shading, jax.random.key(1))))
     leaves = [model[f"param_{i}"] for i in range(treedef.num_leaves)]
@@ -455,7 +456,7 @@ def render_worker(dtype_name: str, sz: Sizes, model_npz: str, out_npz: str) -> N
     out = render()  # settles capacity growth
     first, best = best_time(render, sz.repeats)
     np.savez(out_npz, rgb=np.asarray(out.rgb), opacity=np.asarray(out.opacity), depth=np.asarray(out.depth),
-             num_segments=np.asarray(out.num_segments), lost=np.asarray(out.overflow + out.dropped),
+             num_segments=np.asarray(out.num_segments), lost=np.asarray(out.lost.count),
              checksum=checksum, best_s=best, first_s=first, build_s=build_s, depth_tree=scene.tree.depth,
              dtype=str(out.rgb.dtype))
 

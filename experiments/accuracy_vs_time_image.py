@@ -5,16 +5,21 @@
 From the model's own render config (the one it was trained with) one knob is changed at a time:
 samples per segment ``s`` (``samples_per_level`` scaled, at least 2), ``K`` (capped by the candidate
 set), the candidate-set size (``KDTreeConfig.candidate_min``; the tree is rebuilt), the rendering
-levels (``num_render_levels``; rebuilt), the traversal frontier (``frontier_capacity``: nodes kept
-per ray and level; a chunk of rays that overflows it is rendered again at twice the width, see
-:func:`~ne_jax.render.renderer.render_chunked`, so at render time it is a starting width: it trades
-re-rendered chunks against the width, and ``overflow_rays`` counts the rays of the timed view that
-overflow it before any growth), the share of points kept (a seeded random
+levels (``num_render_levels``; rebuilt), the traversal frontier (``Capacities.frontier`` of the
+scene: nodes kept per ray and level; a chunk of rays that overflows it is rendered again at twice the
+width, see :func:`~ne_jax.render.renderer.render_chunked`, so at render time it is a starting width:
+it trades re-rendered chunks against the width, and ``overflow_rays`` counts the rays of the timed
+view that overflow it before any growth), the share of points kept (a seeded random
 subset of the alive points, the others deleted, rebuilt), the integration rule (every deterministic
 quadrature rule, and ``integration="samples"``: shade every sample, no integration), the chunk size
 (time only: it changes no pixel), joint settings (everything cheaper, everything richer, s x1.5 with
-the spline rule), and the ``tiny`` and ``default`` run presets' tree and quadrature
-where they differ from the own.
+the spline rule), and the ``tiny`` and ``default`` run presets' tree, quadrature and traversal
+capacities where they differ from the own.
+
+Every setting renders with the capacities the model's run config starts with
+(``RunConfig.capacities``; the frontier knob and the presets change its traversal widths), not the
+ones its training ended with: the packing budget is the run's starting one, as before capacities
+were carried by the scene.
 
 Each setting is scored on two targets: the trained model on its scene's test split (``original``),
 and the model edited zero-shot by :func:`~ne_jax.edit.model.edit_model` (IST on) on the edited
@@ -52,13 +57,14 @@ KNOBS = {
     "k": "K, neighbours per sample (at most the candidate-set size)",
     "candidates": "candidate-set size (KDTreeConfig.candidate_min; tree rebuilt)",
     "levels": "rendering levels (KDTreeConfig.num_render_levels; tree rebuilt)",
-    "frontier": "traversal frontier (KDTreeConfig.frontier_capacity: nodes kept per ray and level; a chunk "
+    "frontier": "traversal frontier (Capacities.frontier: nodes kept per ray and level; a chunk "
                 "that overflows it is rendered again at twice the width, so no segment is lost)",
     "points": "share of the alive points kept (seeded random subset, the rest deleted; tree rebuilt)",
     "rule": "integration: quadrature rule, or 'samples' (shade each sample, no integration)",
     "chunk": "rays per compiled call (time only: no pixel changes, accuracy copied from the own config)",
     "joint": "several knobs at once",
-    "preset": "a library preset's tree, quadrature and chunk (the model's shading kept)",
+    "preset": "a library preset's tree, quadrature, chunk and traversal capacities (the model's shading and "
+              "packing budget kept)",
 }
 
 
@@ -109,6 +115,8 @@ class Setting:
     cfg: object  # RenderConfig
     keep: float = 1.0
     time_only: bool = False
+    capacities: object = None
+    """The scene's :class:`~ne_jax.geometry.capacity.Capacities` for this setting (``None``: the own)."""
 
 
 def _scaled_samples(spl: tuple[int, ...], f: float) -> tuple[int, ...]:
@@ -126,10 +134,14 @@ def _with_levels(cfg, levels: int):
     return cfg.replace(tree=tree, quadrature=dataclasses.replace(q, samples_per_level=spl))
 
 
-def settings_for(own, sz: ImageSizes) -> list[Setting]:
-    """The settings of one target, from its own render config ``own`` (a RenderConfig)."""
+def settings_for(own, sz: ImageSizes, capacities=None) -> list[Setting]:
+    """The settings of one target, from its own render config ``own`` (a RenderConfig) and the own
+    buffer sizes ``capacities`` (default ``Capacities()``), which the frontier knob and the presets
+    change."""
+    from ne_jax.geometry.capacity import Capacities
     from ne_jax.render.quadrature import DETERMINISTIC_RULES
 
+    caps = Capacities() if capacities is None else capacities
     q, t = own.quadrature, own.tree
     spl = tuple(q.samples_per_level)
     nc = t.num_candidates
@@ -149,8 +161,11 @@ def settings_for(own, sz: ImageSizes) -> list[Setting]:
             cfg = _with_levels(own, lv)
             out.append(Setting("levels", f"levels={lv} (candidates {cfg.tree.num_candidates})", lv, cfg))
     for f in sz.frontier_scales:
-        fc = max(2, int(round(t.frontier_capacity * f)))
-        out.append(Setting("frontier", f"frontier={fc}", fc, own.replace(tree=t.replace(frontier_capacity=fc))))
+        fc = max(2, int(round(caps.frontier * f)))
+        first = caps.first_pass_frontier if caps.first_pass_frontier is not None and caps.first_pass_frontier < fc \
+            else None  # a first pass at least as wide as the frontier: one pass
+        out.append(Setting("frontier", f"frontier={fc}", fc, own,
+                           capacities=caps.replace(frontier=fc, first_pass_frontier=first)))
     for f in sz.keep:
         out.append(Setting("points", f"points {f:.0%}", f, own, keep=f))
     rules = DETERMINISTIC_RULES if sz.rules is None else sz.rules
@@ -175,18 +190,20 @@ def settings_for(own, sz: ImageSizes) -> list[Setting]:
     for name in sz.presets:
         from ne_jax.train.run import get_run_preset
 
-        p = get_run_preset(name).render
+        preset = get_run_preset(name)
+        p = preset.render
         cfg = own.replace(tree=p.tree, quadrature=p.quadrature, chunk=p.chunk)
-        if cfg != own:
-            out.append(Setting("preset", f"preset {name}", name, cfg))
+        cap = preset.capacities.replace(segments_per_ray=caps.segments_per_ray)  # the own packing budget
+        if cfg != own or cap != caps:
+            out.append(Setting("preset", f"preset {name}", name, cfg, capacities=cap))
     return out
 
 
 def _overflow_rays(scene, tree_cfg, rays) -> int:
-    """How many of ``rays`` overflow ``tree_cfg``'s traversal capacities (before any growth)."""
+    """How many of ``rays`` overflow ``scene``'s traversal capacities (before any growth)."""
     from ne_jax.geometry.intersect import intersect
 
-    return int(np.sum(np.asarray(intersect(scene.tree, rays, tree_cfg).overflow) > 0))
+    return int(np.sum(np.asarray(intersect(scene.tree, rays, tree_cfg, scene.capacities).lost().count) > 0))
 
 
 def _kept_points(points, frac: float, seed: int):
@@ -229,6 +246,7 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
 
     run = model.run
     own = run.render
+    own_caps = run.capacities  # the run's starting buffer sizes (see the module docstring)
     params = model.state.params
     bg = parse_background(run.background)
     near, far = run.sampler.near, run.sampler.far
@@ -239,7 +257,8 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
     done: dict = {}
     rows = []
     timers = {}
-    for st in settings_for(own, sz):
+    for st in settings_for(own, sz, own_caps):
+        caps = own_caps if st.capacities is None else st.capacities
         skey = (st.cfg.tree, st.keep)
         if skey not in scenes:
             t0 = time.perf_counter()
@@ -247,6 +266,7 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
             scene = model.scene if (st.cfg.tree == own.tree and st.keep >= 1.0) else PointScene.build(pts, st.cfg)
             scenes[skey] = (scene, time.perf_counter() - t0)
         scene, build_s = scenes[skey]
+        scene = scene.replace(capacities=caps)
         row = {"target": name, "knob": st.knob, "label": st.label, "value": st.value, "keep": st.keep,
                "time_only": st.time_only, "samples_per_level": list(st.cfg.quadrature.samples_per_level),
                "rule": st.cfg.quadrature.rule, "integration": st.cfg.integration, "knn_k": st.cfg.tree.knn_k,
@@ -254,8 +274,8 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
                "chunk": st.cfg.chunk, "alive_points": int(np.asarray(scene.points.alive).sum()),
                "tree_depth": int(scene.tree.depth), "tree_build_s": round(build_s, 3),
                "overflow_rays": _overflow_rays(scene, st.cfg.tree, rays0)}
-        if (st.cfg, st.keep) in done and not st.time_only:  # the same render as an earlier setting
-            prev = done[(st.cfg, st.keep)]
+        if (st.cfg, caps, st.keep) in done and not st.time_only:  # the same render as an earlier setting
+            prev = done[(st.cfg, caps, st.keep)]
             row.update({k: prev[k] for k in ("psnr", "ssim", "lost_segments", "ms_per_image", "compile_s")})
             row["same_as"] = prev["label"]
             rows.append(row)
@@ -268,13 +288,13 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
         row["ms_per_image"] = round(1e3 * best, 2)
         row["compile_s"] = round(max(0.0, first - best), 3)
         if st.time_only:
-            base = done.get((st.cfg.replace(chunk=own.chunk), st.keep)) or rows[0]
+            base = done.get((st.cfg.replace(chunk=own.chunk), caps, st.keep)) or rows[0]
             row.update({k: base[k] for k in ("psnr", "ssim", "lost_segments")})
         else:
             report, _ = evaluate_split(st.cfg, params, scene, split, run.background, near, far, progress=False)
             row.update({"psnr": round(report["psnr"], 4), "ssim": round(report["ssim"], 5),
                         "lost_segments": report["lost_segments"]})
-            done[(st.cfg, st.keep)] = row
+            done[(st.cfg, caps, st.keep)] = row
         row["wall_s"] = round(time.perf_counter() - t1, 2)
         row["ms_first_pass"] = row["ms_per_image"]
         rows.append(row)
@@ -297,7 +317,8 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
     for i, r in enumerate(rows):
         r["on_front"] = i in front
     return {"target": name, "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
-            "scene_dir": str(model.scene_dir), "own_render": _cfg_summary(own), "rows": rows,
+            "scene_dir": str(model.scene_dir), "own_render": _cfg_summary(own),
+            "own_capacities": dataclasses.asdict(own_caps), "rows": rows,
             "front": front}
 
 

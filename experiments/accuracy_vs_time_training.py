@@ -11,7 +11,8 @@ samples per segment ``s``, steps, rays per batch, initial points), the joint 2K 
 the preset's and with half the steps; a candidate set narrower than 2K is widened to it), plus the
 preset again with another seed, whose spread is the training noise that any difference must
 exceed. Each candidate is trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the
-config: a re-run trains only what is missing) and scored on the scene's test split with its own
+config and one of the buffer sizes it starts with, :func:`run_key`: a re-run trains only what is
+missing) and scored on the scene's test split with its own
 render config. ``--finished-only`` scores the candidates whose runs have finished and lists the
 others as not trained yet (an interim result while hour-long candidates still train). A run's test
 PSNR/SSIM is kept in its folder (:data:`SCORE_FILE`) and reused while the scene, the run's step and
@@ -72,19 +73,29 @@ most where a model takes an hour (``default``): K both ways, half the steps, the
 settings at the same steps and at a quarter of them (about the same time), half the candidate set,
 and a quarter of the traversal frontier (part 2 on the ``default`` model found the frontier, not the
 candidate set, sets the time per image; ``full`` ends with it too), then the two-pass walk of the
-same full width (:attr:`~ne_jax.geometry.kdtree.KDTreeConfig.first_pass_frontier` at a quarter).
+same full width (:attr:`~ne_jax.geometry.capacity.Capacities.first_pass_frontier` at a quarter).
+These two change only the run's :attr:`~ne_jax.train.run.RunConfig.capacities`, which are not part
+of :func:`~ne_jax.config_json.config_key`: their runs are told apart by :func:`run_key`.
 New candidates go at the end, so the indices of ``--train-only`` keep naming the same runs."""
+
+
+def run_key(run) -> str:
+    """The name of ``run``'s cached run directory: its :func:`~ne_jax.config_json.config_key` and a
+    hash of the buffer sizes it starts with (``RunConfig.capacities``, left out of the config key), so
+    candidates that differ only there (the frontier and two-pass candidates) train apart."""
+    return f"{config_key(run)}-cap{config_key(run.capacities)[:6]}"
 
 
 def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> list[Candidate]:
     """The preset ``run`` and one-knob changes of it (``quick``: two short ones, for the smoke test;
     ``candidate_set``: see :data:`CANDIDATE_SETS`)."""
+    from ne_jax.geometry.capacity import Capacities
     from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.render.quadrature import QuadratureConfig
 
     if candidate_set not in CANDIDATE_SETS:
         raise ValueError(f"candidate_set: expected one of {CANDIDATE_SETS}, found {candidate_set!r}")
-    t, q = run.render.tree, run.render.quadrature
+    t, q, cap = run.render.tree, run.render.quadrature, run.capacities
     spl = tuple(q.samples_per_level)
 
     def with_k(k, cfg=run):
@@ -101,14 +112,12 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         return cfg.replace(render=cfg.render.replace(
             quadrature=dataclasses.replace(rq, samples_per_level=_scaled_samples(tuple(rq.samples_per_level), f))))
 
-    narrow = t.replace(frontier_capacity=max(2, t.frontier_capacity // 4), first_pass_frontier=None)
-    narrow_frontier = Candidate(f"frontier={narrow.frontier_capacity}", "frontier",
-                                run.replace(render=run.render.replace(tree=narrow)))
-    two = t.replace(first_pass_frontier=narrow.frontier_capacity, retry_share=TWO_PASS_SHARE)
-    two_pass = [] if two == t else [  # a preset that walks this way already has no such candidate
-        Candidate(f"two-pass frontier ({two.first_pass_frontier} then {t.frontier_capacity}, "
-                  f"retry share 1/{round(1 / TWO_PASS_SHARE)})", "two-pass",
-                  run.replace(render=run.render.replace(tree=two)))]
+    narrow = cap.replace(frontier=max(2, cap.frontier // 4), first_pass_frontier=None)
+    narrow_frontier = Candidate(f"frontier={narrow.frontier}", "frontier", run.replace(capacities=narrow))
+    two = cap.replace(first_pass_frontier=narrow.frontier, retry_share=TWO_PASS_SHARE)
+    two_pass = [] if two == cap else [  # a preset that walks this way already has no such candidate
+        Candidate(f"two-pass frontier ({two.first_pass_frontier} then {cap.frontier}, "
+                  f"retry share 1/{round(1 / TWO_PASS_SHARE)})", "two-pass", run.replace(capacities=two))]
     if quick:
         return [Candidate("own", "own", run), Candidate(f"K={max(1, t.knn_k // 2)}", "k", with_k(max(1, t.knn_k // 2)))]
     out = [Candidate("own", "own", run), Candidate("own, seed 1", "seed", run.replace(seed=run.seed + 1))]
@@ -119,7 +128,10 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         out.append(Candidate("steps x0.5", "steps", run.with_schedule(steps_per_epoch=run.steps_per_epoch // 2)))
         paper_tree, paper_q = KDTreeConfig(), QuadratureConfig()
         if (t, q) != (paper_tree, paper_q):
-            paper = run.replace(render=run.render.replace(tree=paper_tree, quadrature=paper_q))
+            # walked as the paper's tree config walked before the buffer sizes left it: one pass with
+            # the default frontier and slots (the preset's packing budget kept)
+            paper_cap = Capacities(segments_per_ray=cap.segments_per_ray)
+            paper = run.replace(render=run.render.replace(tree=paper_tree, quadrature=paper_q), capacities=paper_cap)
             levels = paper_tree.num_render_levels
             label = (f"paper sampling (K={paper_tree.knn_k}, {paper_tree.candidate_min} candidates, "
                      f"{levels} levels, s {paper_q.samples_per_level[:levels]})")
@@ -152,7 +164,7 @@ def is_finished(run, runs: Path) -> bool:
     """Whether ``run``'s cached run in ``runs`` has trained all its epochs."""
     from ne_jax.train.model import METRICS_FILE
 
-    metrics = Path(runs) / config_key(run) / METRICS_FILE
+    metrics = Path(runs) / run_key(run) / METRICS_FILE
     return metrics.is_file() and len(json.loads(metrics.read_text())["epochs"]) >= run.epochs
 
 
@@ -196,21 +208,24 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     from ne_jax.train.loop import train
 
     run = c.run
-    run_dir = runs / config_key(run)
+    run_dir = runs / run_key(run)
     cached = is_finished(run, runs)
     result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
     split = load_split(scene_dir, "test")
     near, far = run.sampler.near, run.sampler.far
     key = score_key(scene_dir, result.state.step)
+    # rendered with the buffer sizes the run starts with, not the ones its training grew to (as in
+    # the image study): the frontier candidates are scored and timed at their own width
+    scene = result.scene.replace(capacities=run.capacities)
     kept = json.loads((run_dir / SCORE_FILE).read_text()) if (run_dir / SCORE_FILE).is_file() else {}
     score_cached = all(kept.get(k) == v for k, v in key.items())
     if not score_cached:
-        report, _ = evaluate_split(run.render, result.state.params, result.scene, split, run.background, near,
+        report, _ = evaluate_split(run.render, result.state.params, scene, split, run.background, near,
                                    far, progress=False)
         kept = {**key, "psnr": round(report["psnr"], 4), "ssim": round(report["ssim"], 5)}
         atomic_write_json(run_dir / SCORE_FILE, kept)
     cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
-    fn = functools.partial(render_image, cfg, result.state.params, result.scene, split.cameras()[0],
+    fn = functools.partial(render_image, cfg, result.state.params, scene, split.cameras()[0],
                            parse_background(run.background), near, far, progress=False)
     first, best = best_time(fn, repeats)
     jax.clear_caches()
@@ -221,7 +236,9 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
            "batch_size": run.sampler.batch_size, "knn_k": run.render.tree.knn_k,
            "samples_per_level": list(run.render.quadrature.samples_per_level),
            "initial_points": int(result.initial.get("points", 0)),
-           "final_points": int(np.asarray(result.scene.points.alive).sum())}
+           "final_points": int(np.asarray(result.scene.points.alive).sum()),
+           "capacities": {"start": dataclasses.asdict(run.capacities),  # training grows them where it lost segments
+                          "end": dataclasses.asdict(result.scene.capacities)}}
     log(f"[{c.label}] PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}, train {row['train_s']:.0f} s"
         f"{' (cached run)' if cached else ''}, {row['ms_per_image']:.0f} ms per image"
         f"{' (kept score)' if score_cached else ''}")
@@ -344,7 +361,7 @@ def _write(out_dir: Path, stem: str, res: dict, markdown: str, **plot_args) -> N
 
 
 def _preset_key(study: dict) -> str | None:
-    """The config hash of the study's preset (older results: the name of its own run directory)."""
+    """The key of the study's preset run (:func:`run_key`; older results: the name of its own run directory)."""
     first = study["rows"][0]
     return study.get("preset_key") or (Path(first["run_dir"]).name if "run_dir" in first else None)
 
@@ -469,7 +486,7 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
         if bad:
             raise IndexError(f"train_only: expected candidate indices in 0..{len(cands) - 1}, found {bad}")
         for i in train_only:
-            run_dir = Path(runs) / config_key(cands[i].run)
+            run_dir = Path(runs) / run_key(cands[i].run)
             log(f"[{i}: {cands[i].label}] training in {run_dir}")
             train(cands[i].run, scene_dir, run_dir, resume=True, log=log)
         return None
@@ -477,7 +494,7 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     if finished_only:
         finished = [is_finished(c.run, runs) for c in cands]  # cands[0] is the preset's own run
         if not finished[0]:
-            raise FileNotFoundError(f"finished_only: the preset's own run {Path(runs) / config_key(run)} has not "
+            raise FileNotFoundError(f"finished_only: the preset's own run {Path(runs) / run_key(run)} has not "
                                     f"finished training; train it first (train_only=[0])")
         unfinished = [c.label for c, done in zip(cands, finished) if not done]
         cands = [c for c, done in zip(cands, finished) if done]
@@ -486,7 +503,7 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     t0 = time.perf_counter()
     rows = [measure_candidate(c, scene_dir, Path(runs), 1 if quick else 3, log) for c in cands]
     split = load_split(scene_dir, "test")
-    res = {"study": "training", "command": command, "preset": preset, "preset_key": config_key(run),
+    res = {"study": "training", "command": command, "preset": preset, "preset_key": run_key(run),
            "scene": str(scene_dir), "quick": quick,
            "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": SHARED_NOTE},
@@ -502,5 +519,6 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
 
 
 __all__ = ["BUDGET", "CANDIDATE_SETS", "Candidate", "candidates_for", "choose_preset", "combine_scenes",
-           "combined_markdown", "config_key", "is_finished", "library_fingerprint", "rewrite_summary", "run_training",
+           "combined_markdown", "config_key", "is_finished", "library_fingerprint", "rewrite_summary", "run_key",
+           "run_training",
            "scene_results", "score_key", "summary_markdown", "SCORE_FILE"]

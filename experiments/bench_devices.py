@@ -53,7 +53,6 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     from ne_jax.geometry.points import PointState
     from ne_jax.render.renderer import PointScene, render_image
     from ne_jax.train import init_train_state, make_train_step
-    from ne_jax.train.loop import fit_segment_budget
     from ne_jax.train.run import get_run_preset
     from ne_jax.train.sampler import Batch
 
@@ -66,7 +65,7 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     x = 0.9 * x / np.linalg.norm(x, axis=1, keepdims=True) * (1 + 0.03 * rng.normal(size=(points, 1)))
     normal = x / np.linalg.norm(x, axis=1, keepdims=True)
     pts = PointState.from_numpy(x, capacity, run.render.shading.feature_dim, normal=normal, key=jax.random.key(0))
-    scene = PointScene.build(pts, run.render)
+    scene = PointScene.build(pts, run.render, run.capacities)
     state = init_train_state(run.train, run.render, pts, jax.random.key(1))
     near, far = run.sampler.near, run.sampler.far
     test_res = get_preset("tiny").resolution
@@ -82,8 +81,8 @@ def worker(steps: int, res: int, repeats: int) -> dict:
                      in_band=jnp.zeros(batch, bool), background=bg)
 
     batches = [make_batch(i) for i in range(steps)]
-    render = fit_segment_budget(run.render, scene, batches[0].rays)  # as training does
-    step = make_train_step(run.train, render)
+    train_scene = scene.fitted(run.render, batches[0].rays)  # the packing budget, as training fits it
+    step = make_train_step(run.train, run.render)
     cpu_wall = []
 
     def timed(fn):
@@ -98,12 +97,12 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     def train_block():
         s = holder["state"]
         for b in batches:
-            s, _ = step(s, scene, b)
+            s, _ = step(s, train_scene, b)
         holder["state"] = s
         return s.params
 
     t0 = time.perf_counter()
-    jax.block_until_ready(step(state, scene, batches[0])[0].params)
+    jax.block_until_ready(step(state, train_scene, batches[0])[0].params)
     step_first = time.perf_counter() - t0
     step_best = min(timed(train_block) for _ in range(repeats)) / steps
     train_cpu = sum(c for c, _ in cpu_wall) / sum(w for _, w in cpu_wall)

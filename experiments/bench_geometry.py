@@ -111,12 +111,21 @@ def run_size(n: int, quick: bool) -> dict:
     import open3d as o3d
     from scipy.spatial import cKDTree
 
-    from ne_jax.geometry import KDTreeConfig, PointState, build_tree, intersect, intersect_checked, knn_interpolate
+    from ne_jax.geometry import (
+        Capacities,
+        KDTreeConfig,
+        PointState,
+        build_tree,
+        intersect,
+        intersect_checked,
+        knn_interpolate,
+    )
 
     out = {"n": n}
     xyz = surface_cloud(n)
     alive = np.ones(n, bool)
-    cfg = KDTreeConfig(frontier_capacity=64, max_segments=32)
+    cfg = KDTreeConfig()
+    cap = Capacities(frontier=64, max_segments=32)
 
     # --- build ---------------------------------------------------------------------------------
     # Best of 2 builds (the baselines below are best of 2-3 too: the shared CPU is noisy).
@@ -143,10 +152,10 @@ def run_size(n: int, quick: bool) -> dict:
     # --- traversal -----------------------------------------------------------------------------
     res = 64 if quick else 128
     rays = camera_rays_batch(res)
-    seg, cfg = intersect_checked(tree, rays, cfg)
-    out["frontier_capacity"], out["max_segments"] = cfg.frontier_capacity, cfg.max_segments
+    seg, cap = intersect_checked(tree, rays, cfg, cap)
+    out["frontier_capacity"], out["max_segments"] = cap.frontier, cap.max_segments
     out["num_rays"] = int(rays.origin.shape[0])
-    t_int = timeit(lambda: jax.block_until_ready(intersect(tree, rays, cfg)))
+    t_int = timeit(lambda: jax.block_until_ready(intersect(tree, rays, cfg, cap)))
     out["intersect_rays_per_s"] = out["num_rays"] / t_int
     out["us_per_ray"] = 1e6 * t_int / out["num_rays"]
     valid = np.asarray(seg.valid)

@@ -50,20 +50,21 @@ REFERENCE = "default"
 
 def settings(quick: bool) -> list[tuple[str, object]]:
     """``(label, RunConfig)``: every preset; ``default`` walked in one 64-wide pass and with the paper's
-    sampling; ``paper`` with 32 segment slots a ray (its capacity until it was measured) instead of 64."""
+    sampling (also walked in one pass, as it was measured); ``paper`` with 32 segment slots a ray (its
+    capacity until it was measured) instead of 64."""
     from ne_jax.render.renderer import RenderConfig
     from ne_jax.train.run import PRESETS, RunConfig
 
     out = [(name, make()) for name, make in PRESETS.items()]
     d = RunConfig.default()
-    one_pass = d.render.tree.replace(first_pass_frontier=None)
+    one_pass = d.capacities.replace(first_pass_frontier=None)
     paper_sampling = RenderConfig()  # the paper's per-sample settings on the default preset's tree
-    out[2:2] = [("default, one pass", d.replace(render=d.render.replace(tree=one_pass))),
+    out[2:2] = [("default, one pass", d.replace(capacities=one_pass)),
                 ("default, paper sampling", d.replace(render=d.render.replace(tree=paper_sampling.tree,
-                                                                              quadrature=paper_sampling.quadrature)))]
+                                                                              quadrature=paper_sampling.quadrature),
+                                                      capacities=one_pass))]
     p = RunConfig.paper()
-    out.append(("paper, 32 segment slots",
-                p.replace(render=p.render.replace(tree=p.render.tree.replace(max_segments=32)))))
+    out.append(("paper, 32 segment slots", p.replace(capacities=p.capacities.replace(max_segments=32))))
     return [s for s in out if s[0] in ("tiny", REFERENCE)] if quick else out
 
 
@@ -72,7 +73,6 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     import jax
 
     from ne_jax.geometry.intersect import intersect
-    from ne_jax.train.loop import fit_segment_budget
     from ne_jax.train.sampler import sample_batch
     from ne_jax.train.state import init_train_state
     from ne_jax.train.step import make_train_step
@@ -81,18 +81,20 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     points = model.state.point_state(model.scene.points)
     state = init_train_state(run.train, run.render, points, key).replace(params=model.state.params)
     batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i)) for i in range(steps + 1)]
-    render = fit_segment_budget(run.render, scene, batches[0].rays)
-    step = make_train_step(run.train, render)
-    _, per_step, first_s, (overflow, dropped) = timed_steps(step, state, scene, batches)
-    segs = intersect(scene.tree, batches[0].rays, run.render.tree)
+    scene = scene.fitted(run.render, batches[0].rays)  # the packing budget, as training fits it
+    step = make_train_step(run.train, run.render)
+    _, per_step, first_s, lost = timed_steps(step, state, scene, batches)
+    segs = intersect(scene.tree, batches[0].rays, run.render.tree, scene.capacities)
     found = np.asarray(segs.valid).sum(1)
     rays = run.sampler.batch_size
-    return {"batch_rays": rays, "segments_per_ray": render.segments_per_ray, "ms_per_step": round(1e3 * per_step, 2),
+    cap = scene.capacities
+    return {"batch_rays": rays, "segments_per_ray": cap.segments_per_ray, "ms_per_step": round(1e3 * per_step, 2),
             "us_per_ray": round(1e6 * per_step / rays, 3), "step_compile_s": round(first_s - per_step, 2),
-            "train_segments_lost": overflow + dropped, "lost_to_capacity": overflow, "lost_to_budget": dropped,
+            "train_segments_lost": lost.total, "lost_to_capacity": lost.frontier + lost.slots,
+            "lost_to_budget": lost.packing,
             "first_batch": {"mean_segments": round(float(found.mean()), 2),
-                            "rays_at_max_segments": int((found == run.render.tree.max_segments).sum()),
-                            "rays_overflowing": int((np.asarray(segs.overflow) > 0).sum())},
+                            "rays_at_max_segments": int((found == cap.max_segments).sum()),
+                            "rays_overflowing": int((np.asarray(segs.lost().count) > 0).sum())},
             "total_steps": run.total_steps, "projected_train_min": round(run.total_steps * per_step / 60, 1)}
 
 
@@ -125,13 +127,13 @@ def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, q
     rows = []
     for label, run in chosen:
         t0 = time.perf_counter()
-        scene = PointScene.build(points, run.render)
+        scene = PointScene.build(points, run.render, run.capacities)
         build_s = time.perf_counter() - t0
         bg = parse_background(run.background)
         near, far = run.sampler.near, run.sampler.far
         pool = build_pool(run.sampler, train_split, run.background)
         row = {"label": label, "preset": run.name, "tree_depth": int(scene.tree.depth),
-               "frontier": [run.render.tree.first_pass_frontier, run.render.tree.frontier_capacity],
+               "frontier": [run.capacities.first_pass_frontier, run.capacities.frontier],
                "knn_k": run.render.tree.knn_k, "tree_build_s": round(build_s, 2)}
         row.update(time_steps(run, model, pool, scene, steps))
 

@@ -67,7 +67,7 @@ def time_render(cfg: RenderConfig, scene: PointScene, repeats: int) -> dict:
         "rays_per_s": round(RES * RES / best),
         "first_call_s": round(first, 2),
         "segments_per_ray": round(float(jnp.mean(out.num_segments)), 2),
-        "lost_segments": int(jnp.sum(out.overflow) + jnp.sum(out.dropped)),
+        "lost_segments": int(jnp.sum(out.lost.count)),
         "params": num_params(params),
     }
 
@@ -86,11 +86,12 @@ def main(argv=None) -> None:
     rows = []
     clouds = {}
     for preset, n in n_points.items():
-        cfg = get_run_preset(preset).render
+        run = get_run_preset(preset)
+        cfg = run.render
         if n not in clouds:
             clouds[n] = make_points(n)
         t0 = time.perf_counter()
-        scene = PointScene.build(clouds[n], cfg)
+        scene = PointScene.build(clouds[n], cfg, run.capacities)
         build = time.perf_counter() - t0
         r = time_render(cfg, scene, args.repeats)
         rows.append({"setting": f"preset {preset}", "points": n, "depth": scene.tree.depth,
@@ -98,19 +99,20 @@ def main(argv=None) -> None:
         print(rows[-1], flush=True)
         if preset == "default":
             base = cfg
-            variants = {
-                "specular off (diffuse only)": base.with_effects(specular=False),
-                "IST on": base.with_effects(ist=True),
-                "background sphere on": base.with_effects(background="sphere"),
-                "predicted normals (no point normals)": base.with_effects(point_normals=False),
-                "traditional colour head": base.with_effects(specular=False, color_head="traditional"),
+            unpacked = scene.replace(capacities=scene.capacities.replace(segments_per_ray=None))
+            variants = {  # (render config, scene)
+                "specular off (diffuse only)": (base.with_effects(specular=False), scene),
+                "IST on": (base.with_effects(ist=True), scene),
+                "background sphere on": (base.with_effects(background="sphere"), scene),
+                "predicted normals (no point normals)": (base.with_effects(point_normals=False), scene),
+                "traditional colour head": (base.with_effects(specular=False, color_head="traditional"), scene),
                 # Unpacked, every one of the M slots per ray is sampled and shaded: at the default
                 # 4096-ray chunk that needs ~31 GB, so this row uses 512-ray chunks.
-                "no segment packing (512-ray chunks)": base.replace(segments_per_ray=None, chunk=512),
+                "no segment packing (512-ray chunks)": (base.replace(chunk=512), unpacked),
             }
-            for name, vcfg in variants.items():
+            for name, (vcfg, vscene) in variants.items():
                 rows.append({"setting": f"default, {name}", "points": n, "depth": scene.tree.depth,
-                             "build_s": None, **time_render(vcfg, scene, args.repeats)})
+                             "build_s": None, **time_render(vcfg, vscene, args.repeats)})
                 print(rows[-1], flush=True)
 
     device = str(jax.devices()[0])

@@ -2,9 +2,9 @@
 
     python -m experiments.bench_traversal --run RUN_DIR [--scene DIR] [--views 5] [--train-steps 50] [--quick]
 
-A ray walks the K-D tree level by level with a frontier of ``frontier_capacity`` nodes, and the
+A ray walks the K-D tree level by level with a frontier of ``Capacities.frontier`` nodes, and the
 cost follows that width; most rays of a surface-like cloud need far fewer nodes per level. With
-``KDTreeConfig.first_pass_frontier`` every ray is walked at a narrow width first and only the rays
+``Capacities.first_pass_frontier`` every ray is walked at a narrow width first and only the rays
 that overflow it (at most ``retry_share`` of a call's rays) are walked again at full width. Per
 setting, on all pixels of ``--views`` evenly spaced test views of the run's scene:
 
@@ -45,7 +45,7 @@ from experiments.common import write_results as write_bench  # noqa: E402
 
 
 def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
-    """``(label, KDTreeConfig changes)``: the reference first, then narrower single passes (lossy)
+    """``(label, Capacities changes)``: the reference first, then narrower single passes (lossy)
     and two-pass walks of the same full width."""
     def two(w, share):
         return (f"two passes, {w} then {width}, retry share 1/{round(1 / share)}",
@@ -55,15 +55,16 @@ def settings(width: int, quick: bool) -> list[tuple[str, dict]]:
     if quick:
         return [ref, two(width // 4, 1.0)]
     out = [ref, (f"one pass, frontier {width} (the reference again: run-to-run noise)", {})]
-    out += [(f"one pass, frontier {w} (lossy)", dict(frontier_capacity=w)) for w in (width // 4, width // 2)]
+    out += [(f"one pass, frontier {w} (lossy)", dict(frontier=w)) for w in (width // 4, width // 2)]
     out += [two(width // 8, 1 / 4), two(width // 4, 1 / 16), two(width // 4, 1 / 8), two(width // 4, 1 / 4),
             two(width // 2, 1 / 16)]
     return out
 
 
-def train_steps(model, scene_dir: Path, tree_cfg, steps: int) -> tuple[float, int, dict]:
-    """``steps`` training steps from ``model``'s state with the render tree ``tree_cfg``: ``(s per step
-    after the compiling first, segments lost, parameters after)``."""
+def train_steps(model, scene_dir: Path, capacities, steps: int) -> tuple[float, int, dict]:
+    """``steps`` training steps from ``model``'s state with the traversal of ``capacities`` (the packing
+    budget as the run ended): ``(s per step after the compiling first, segments lost, parameters
+    after)``."""
     import jax
 
     from ne_jax.data.nerf_synthetic import load_split
@@ -71,13 +72,14 @@ def train_steps(model, scene_dir: Path, tree_cfg, steps: int) -> tuple[float, in
     from ne_jax.train.step import make_train_step
 
     run = model.run
-    budget = model.meta.get("extra", {}).get("segments_per_ray", run.render.segments_per_ray)  # as the run ended
-    step = make_train_step(run.train, run.render.replace(tree=tree_cfg, segments_per_ray=budget))
+    budget = model.scene.capacities.segments_per_ray  # as the run ended
+    scene = model.scene.replace(capacities=capacities.replace(segments_per_ray=budget))
+    step = make_train_step(run.train, run.render)
     pool = build_pool(run.sampler, load_split(scene_dir, "train"), run.background)
     key = jax.random.PRNGKey(0)
     batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i)) for i in range(steps + 1)]
-    state, per_step, _, lost = timed_steps(step, model.state, model.scene, batches)
-    return per_step, sum(lost), state.params
+    state, per_step, _, lost = timed_steps(step, model.state, scene, batches)
+    return per_step, lost.total, state.params
 
 
 def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, quick: bool, steps: int = 0,
@@ -107,24 +109,24 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
     bg = parse_background(run.background)
     camera = split.camera(int(idx[0]))
     rows, ref_seg, ref_rgb, ref_params = [], None, None, None
-    one_pass = run.render.tree.replace(first_pass_frontier=None)  # the reference, whatever the run walked
-    for label, changes in settings(one_pass.frontier_capacity, quick):
-        cfg = one_pass.replace(**changes)
+    one_pass = run.capacities.replace(first_pass_frontier=None)  # the reference, whatever the run walked
+    for label, changes in settings(one_pass.frontier, quick):
+        cap = one_pass.replace(**changes)
 
-        def walk(cfg=cfg):
-            return [intersect(tree, c, cfg) for c in chunks]
+        def walk(cap=cap):
+            return [intersect(tree, c, run.render.tree, cap) for c in chunks]
 
         segs = jax.block_until_ready(walk())
         _, t_walk = best_time(lambda: jax.block_until_ready(walk()), repeats)
         fields = [np.concatenate([np.asarray(getattr(s, f)) for s in segs]) for f in ("t_lo", "t_hi", "node", "valid")]
-        lost = int(sum(int(jnp.sum(s.overflow > 0)) for s in segs))
-        render_cfg = run.render.replace(tree=cfg)
-        image = functools.partial(render_image, render_cfg, model.state.params, model.scene, camera, bg, near, far,
+        lost = int(sum(int(jnp.sum(s.lost().count > 0)) for s in segs))
+        scene = model.scene.replace(capacities=cap)  # the run's starting packing budget, as it was measured
+        image = functools.partial(render_image, run.render, model.state.params, scene, camera, bg, near, far,
                                   progress=False)
         first, t_img = best_time(lambda image=image: jax.block_until_ready(image().rgb), repeats)
         rgb = np.asarray(image().rgb)
-        if steps and "frontier_capacity" not in changes:  # training: the reference and the two-pass walks
-            t_step, lost_train, params = train_steps(model, scene_dir, cfg, steps)
+        if steps and "frontier" not in changes:  # training: the reference and the two-pass walks
+            t_step, lost_train, params = train_steps(model, scene_dir, cap, steps)
         if ref_seg is None:
             ref_seg, ref_rgb, ref_walk, ref_img = fields, rgb, t_walk, t_img
             if steps:
@@ -134,7 +136,7 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
                "segments_equal_reference": all(np.array_equal(a, b) for a, b in zip(fields, ref_seg)),
                "ms_per_image": round(1e3 * t_img, 1), "image_ratio": round(t_img / ref_img, 3),
                "compile_s": round(max(0.0, first - t_img), 2), "max_abs_rgb_diff": float(np.abs(rgb - ref_rgb).max())}
-        if steps and "frontier_capacity" not in changes:
+        if steps and "frontier" not in changes:
             diff = jax.tree_util.tree_map(lambda a, b: float(jnp.max(jnp.abs(a - b))), params, ref_params)
             row.update({"ms_per_step": round(1e3 * t_step, 1), "step_ratio": round(t_step / ref_step, 3),
                         "train_segments_lost": lost_train,

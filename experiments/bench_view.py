@@ -94,7 +94,7 @@ def _resampled(model, n: int, seed: int = 0):
     if state is None:
         raise SystemExit(f"--points {n}: expected more points than the model's capacity {pts.capacity}")
     t0 = time.perf_counter()
-    scene = PointScene.build(big, model.run.render)
+    scene = PointScene.build(big, model.run.render, model.scene.capacities)
     return model.replace(state=state, scene=scene, run_dir=None), time.perf_counter() - t0
 
 

@@ -49,23 +49,25 @@ def best_time(fn, repeats: int) -> tuple[float, float]:
 
 def timed_steps(step, state, scene, batches) -> tuple:
     """Run the jitted training ``step`` over ``batches`` (the first compiles): ``(state after, s per
-    step after the first, s of the first, lost)`` with ``lost = (overflow, dropped)`` summed over all
-    steps. The counts are read after the clock stops: a read each step would wait for the device."""
+    step after the first, s of the first, lost)`` with ``lost`` what the steps lost to ``scene``'s
+    capacities (:class:`~ne_jax.geometry.capacity.LostCounts`, summed over all steps). The counts are
+    read after the clock stops: a read each step would wait for the device."""
     import jax
+
+    from ne_jax.train.loop import lost_counts
 
     counts = []
     t0 = time.perf_counter()
     for i, batch in enumerate(batches):
         state, m = step(state, scene, batch)
-        counts.append((m["overflow"], m["dropped"]))
+        counts.append({k: v for k, v in m.items() if k.startswith("lost/")})
         if i == 0:
             jax.block_until_ready(state.params)
             first = time.perf_counter() - t0
             t0 = time.perf_counter()
     jax.block_until_ready(state.params)
     per_step = (time.perf_counter() - t0) / max(1, len(batches) - 1)
-    lost = tuple(int(sum(int(c[j]) for c in counts)) for j in (0, 1))
-    return state, per_step, first, lost
+    return state, per_step, first, lost_counts(jax.device_get(counts))
 
 
 def device_tag() -> str:

@@ -1,16 +1,18 @@
 """What declaring a scene's effects buys: each benchmark scene trained with the effects its
 ``scene.json`` declares and with every effect on (``--effects all``), in one run: training time,
-time per test image, parameters and test PSNR.
+time per test image (wall and this process's CPU time), parameters, test PSNR and SSIM.
 
     python -m experiments.effects_study --root BENCH/tiny --preset tiny --runs RUNS --out effects_study_tiny
 
-Writes ``experiments/results/<out>.{json,md}``. Runs are cached in ``--runs`` (a finished run is
-read back, its recorded training time kept).
+Run it pinned to one core (``taskset -c 0``) so that its CPU times are one core's. Writes
+``experiments/results/<out>.{json,md}``. Runs are cached in ``--runs`` (a finished run is read back,
+its recorded training time kept; its CPU time is then unknown).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 from pathlib import Path
@@ -18,7 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ne_jax import provenance
+from experiments import common
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
@@ -29,25 +31,49 @@ from ne_jax.train.run import get_run_preset
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCENES = ("glossy", "cup", "stool", "blocks")
+TIMING_NOTE = ("train_seconds: wall time of one training as the run recorded it (compiles included; a cached run keeps "
+               "its own); train_cpu_seconds: this process's CPU time over that training (null for a resumed or "
+               "cached run); seconds_per_image, cpu_seconds_per_image: one pass over the test views after a pass "
+               "that compiles; rows ran one after another, next to whatever else the machine ran (load averages "
+               "recorded): wall times move with that load, CPU times much less")
 
 
 def _commit() -> str:
-    return provenance.commit(short=True)
+    return common.commit()
+
+
+def _machine() -> dict:
+    """CPU count, device, JAX version and the load average (other jobs inflate the timings)."""
+    load = [round(x, 2) for x in os.getloadavg()]
+    return {"cpus": os.cpu_count(), "usable_cpus": len(os.sched_getaffinity(0)), "device": jax.devices()[0].device_kind,
+            "jax_devices": jax.device_count(), "jax": jax.__version__, "platform": platform.platform(),
+            "load_average_1_5_15_min": load, "note": TIMING_NOTE}
+
+
+def _cpu_seconds() -> float:
+    """This process's CPU time (user + system, all its threads): what a job costs, whatever else runs."""
+    return time.process_time()
 
 
 def measure(preset: str, scene_dir: Path, spec: str, run_dir: Path) -> dict:
     base = get_run_preset(preset)
     render, record = declare_effects(base.render, spec, scene_dir)
     run = base.replace(render=render)
+    fresh = not (Path(run_dir) / "metrics.json").exists()  # else resumed or cached: its CPU time is unknown
+    c0 = _cpu_seconds()
     model = train(run, scene_dir, run_dir, progress=False, log=lambda s: None, notes={"effects": record})
+    train_cpu = round(_cpu_seconds() - c0, 1) if fresh else None
     split = load_split(scene_dir, "test")
     evaluate_model(model, split, progress=False, lpips_net=None)  # compiles
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_seconds()
     report, _ = evaluate_model(model, split, progress=False, lpips_net=None)
     per_image = (time.perf_counter() - t0) / split.num_views
+    cpu_per_image = (_cpu_seconds() - c0) / split.num_views
     params = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(model.state.params))
     return {"spec": spec, "effects": record["effects"], "source": record["source"], "config_key": config_key(run),
-            "train_seconds": round(model.recorded_seconds, 1), "seconds_per_image": round(per_image, 3),
+            "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()],
+            "train_seconds": round(model.recorded_seconds, 1), "train_cpu_seconds": train_cpu,
+            "seconds_per_image": round(per_image, 3), "cpu_seconds_per_image": round(cpu_per_image, 3),
             "parameters": params, "psnr": round(report["psnr"], 2), "ssim": round(report["ssim"], 4)}
 
 
@@ -61,6 +87,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     out = args.out or f"effects_study_{args.preset}"
     rows = []
+    machine_at_start, commit_at_start = _machine(), _commit()  # the code imported is the code at the start
     for scene in args.scenes:
         for spec in ("scene", "all"):
             rec = measure(args.preset, args.root / scene, spec, args.runs / scene / spec)
@@ -69,17 +96,21 @@ def main(argv=None) -> None:
             print(f"{scene} {spec}: {rec}", flush=True)
     command = (f"python -m experiments.effects_study --root {args.root} --preset {args.preset} --scenes "
                f"{' '.join(args.scenes)} --runs RUNS --out {out}")
-    report = {"what": "declared effects against every effect on, per scene", "commit": _commit(), "command": command,
-              "machine": {"cpus": jax.device_count(), "platform": platform.platform()}, "rows": rows}
+    report = {"what": "declared effects against every effect on, per scene", "commit": commit_at_start,
+              "command": command, "machine": machine_at_start,
+              "load_average_at_end": _machine()["load_average_1_5_15_min"], "rows": rows}
     atomic_write_json(RESULTS / f"{out}.json", report)
     lines = [f"Declared effects (`scene.json`) against every effect on (`all`), preset `{args.preset}`, commit "
              f"{report['commit']}: `{command}`.", "",
-             "| scene | effects | specular | background | train s | s / image | parameters | test PSNR |",
-             "|---|---|---|---|---:|---:|---:|---:|"]
+             "| scene | effects | specular | background | train s | train CPU s | s / image | CPU s / image | "
+             "parameters | test PSNR | test SSIM |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         e = r["effects"]
+        cpu = "-" if r["train_cpu_seconds"] is None else f"{r['train_cpu_seconds']:.0f}"
         lines.append(f"| {r['scene']} | {r['spec']} | {e['specular']} | {e['background']} | {r['train_seconds']:.0f} | "
-                     f"{r['seconds_per_image']:.2f} | {r['parameters']:,} | {r['psnr']:.2f} |")
+                     f"{cpu} | {r['seconds_per_image']:.2f} | {r['cpu_seconds_per_image']:.2f} | {r['parameters']:,} | "
+                     f"{r['psnr']:.2f} | {r['ssim']:.3f} |")
     atomic_write_text(RESULTS / f"{out}.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 

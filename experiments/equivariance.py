@@ -104,12 +104,12 @@ def diagnose(model, cameras, pts, pivot, ref, log) -> list[dict]:
     exact = exact_rigid_points(pts, edit.matrix)
     no_fill = apply_edit(pts, edit, EditConfig(ist=ISTConfig(fill_passes=0, smooth_iters=0)))
     base = model.scene
-    rebuilt = PointScene.build(fitted, render)
+    rebuilt = PointScene.build(fitted, render, base.capacities)
     stages = [
         ("tree rebuilt (paper)", "rebuild", render, rebuilt),
         ("tree rebuilt, spacing kept", "rebuild", render,
          rebuilt.replace(tree=rebuilt.tree.replace(spacing=base.tree.spacing))),
-        ("tree rebuilt, normals and ISTs exact", "rebuild", render, PointScene.build(exact, render)),
+        ("tree rebuilt, normals and ISTs exact", "rebuild", render, PointScene.build(exact, render, base.capacities)),
         ("partition kept; world boxes re-fitted, candidate sets re-chosen", "carry", render,
          base.edited(fitted, render, oriented=False, recompute_candidates=True)),
         ("partition and candidate sets kept; world boxes re-fitted", "carry", render,

@@ -22,7 +22,9 @@ matrices measured in the same run.
 
 Old vs new: the whole render and the whole training step are also timed, in subprocesses, with the
 code at ``--reference-path`` (a worktree of the reference commit) and with this checkout,
-alternating, so the ratio is measured in one run on the same (shared) machine.
+alternating, so the ratio is measured in one run on the same (shared) machine. That path runs
+this file against the reference's ``ne_jax``, so :func:`build_inputs` and :func:`measure_whole` also
+work with a reference from before the buffer sizes moved into ``Capacities`` (carried by the scene).
 Writes ``experiments/results/profile_hot_path.{json,md}``.
 """
 
@@ -83,6 +85,14 @@ def flops_of(jitted, *args) -> float | None:
     return float(ca["flops"])
 
 
+def _new_api() -> bool:
+    """Whether the importable ``ne_jax`` carries the buffer sizes on the scene (``Capacities``), not in
+    the render and tree configs (a reference checkout may predate it)."""
+    import importlib.util
+
+    return importlib.util.find_spec("ne_jax.geometry.capacity") is not None
+
+
 def build_inputs(quick: bool):
     """The ``default`` scene, a render batch and a training batch (see the module docstring)."""
     import jax
@@ -106,14 +116,16 @@ def build_inputs(quick: bool):
                                 normal=smp["normal"].astype(np.float32))
     feat = jax.random.normal(jax.random.key(0), pts.feature.shape) * 0.5
     pts = pts.replace(feature=feat, conf_logit=jnp.full(pts.conf_logit.shape, 2.0))
+    new_api = _new_api()
     t0 = time.perf_counter()
-    scene = PointScene.build(pts, cfg)
+    scene = PointScene.build(pts, cfg, run.capacities) if new_api else PointScene.build(pts, cfg)
     build_s = time.perf_counter() - t0
     cam = Camera.from_fov(cameras.orbit_cameras(4)[1], IMAGE, IMAGE, cameras.CAMERA_ANGLE_X)
     rays = camera_rays(cam, cameras.NEAR, cameras.FAR)
     mid = (IMAGE * IMAGE) // 2 - RENDER_RAYS // 2  # a chunk through the middle of the image
     render_rays = rays.take(slice(mid, mid + RENDER_RAYS))
-    hits = np.asarray(intersect(scene.tree, rays, cfg.tree).num_segments) > 0
+    caps = (scene.capacities,) if new_api else ()
+    hits = np.asarray(intersect(scene.tree, rays, cfg.tree, *caps).num_segments) > 0
     rng = np.random.default_rng(0)
     n_hit = int(0.9 * TRAIN_RAYS)
     idx = np.concatenate([rng.choice(np.flatnonzero(hits), n_hit),
@@ -132,13 +144,18 @@ def measure_whole(repeats: int, quick: bool) -> dict:
 
     import ne_jax
     from ne_jax.render.renderer import render_rays
-    from ne_jax.train.loop import fit_segment_budget
     from ne_jax.train.sampler import Batch
     from ne_jax.train.state import init_train_state
     from ne_jax.train.step import make_train_step
 
     run, scene, rrays, trays, _, _ = build_inputs(quick)
-    cfg = fit_segment_budget(run.render, scene, trays)
+    new_api = _new_api()
+    if new_api:  # the packing budget, as training fits it: on the training step's scene
+        cfg, train_scene = run.render, scene.fitted(run.render, trays)
+    else:  # a reference from before Capacities: on the render config
+        from ne_jax.train.loop import fit_segment_budget
+
+        cfg, train_scene = fit_segment_budget(run.render, scene, trays), scene
     bg = jnp.ones(3)
     params_state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
     render = jax.jit(lambda p, sc, r: render_rays(run.render, p, sc, r, bg))
@@ -147,11 +164,15 @@ def measure_whole(repeats: int, quick: bool) -> dict:
     batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
                   background=bg)
     state = params_state
-    t_step = best_time(lambda: step(state, scene, batch)[1]["loss/total"], repeats)
-    out = step(state, scene, batch)[1]
+    t_step = best_time(lambda: step(state, train_scene, batch)[1]["loss/total"], repeats)
+    out = step(state, train_scene, batch)[1]
+    if new_api:  # segments lost to the packing budget / to the traversal's capacities
+        dropped, overflow = int(out["lost/packing"]), int(out["lost/frontier"]) + int(out["lost/slots"])
+    else:
+        dropped, overflow = int(out["dropped"]), int(out["overflow"])
     return {"ne_jax": str(Path(ne_jax.__file__).resolve().parent.parent), "render_rays_per_s": RENDER_RAYS / t_render,
             "render_ms": 1e3 * t_render, "step_rays_per_s": TRAIN_RAYS / t_step, "step_ms": 1e3 * t_step,
-            "loss": float(out["loss/total"]), "dropped": int(out["dropped"]), "overflow": int(out["overflow"])}
+            "loss": float(out["loss/total"]), "dropped": dropped, "overflow": overflow}
 
 
 def profile_stages(repeats: int, quick: bool) -> dict:
@@ -167,7 +188,6 @@ def profile_stages(repeats: int, quick: bool) -> dict:
     from ne_jax.render.quadrature import level_samples
     from ne_jax.render.renderer import _values_to_interpolate, render_rays, render_rays_with_aux
     from ne_jax.render.shading import shade
-    from ne_jax.train.loop import fit_segment_budget
     from ne_jax.train.sampler import Batch
     from ne_jax.train.state import init_train_state
     from ne_jax.train.step import make_train_step
@@ -193,15 +213,17 @@ def profile_stages(repeats: int, quick: bool) -> dict:
         return j(*args)
 
     def one(kind, rays):  # the stages of one batch ("render" or "train")
-        cfg = fit_segment_budget(run.render, scene, trays) if kind == "train" else run.render
+        cfg = run.render
+        sc = scene.fitted(cfg, trays) if kind == "train" else scene  # the packing budget, as training fits it
+        cap = sc.capacities
         tc = cfg.tree
-        tree = scene.tree
-        params = init_train_state(run.train, cfg, scene.points, jax.random.key(1)).params
+        tree = sc.tree
+        params = init_train_state(run.train, cfg, sc.points, jax.random.key(1)).params
         aux = kind == "train"
         r = rays.num_rays
-        seg = add("traversal", kind, r, lambda tr, ry: intersect(tr, ry, tc), tree, rays)
+        seg = add("traversal", kind, r, lambda tr, ry: intersect(tr, ry, tc, cap), tree, rays)
         m = seg.valid.shape[1]
-        budget = cfg.segment_budget(r)
+        budget = cap.segment_budget(r)
 
         def pack(seg, rays, depth):
             flat = lambda x: x.reshape((r * m,) + x.shape[2:])  # noqa: E731
@@ -216,7 +238,7 @@ def profile_stages(repeats: int, quick: bool) -> dict:
 
         slot, live, d, pos, w, node = add("packing and sampling", kind, r, pack, seg, rays, tree.depth)
         eps = (tc.knn_eps_factor * tree.spacing).astype(jnp.float32)
-        pts = scene.points
+        pts = sc.points
         nb, ci, j = add("candidate gather and top-k", kind, r,
                         lambda p, t_, x, n_: K._candidate_search(p, t_, x, n_, tc.knn_k, eps), pts, tree, pos, node)
         needed = _values_to_interpolate(pts, cfg.shading.effects, aux)
@@ -242,23 +264,23 @@ def profile_stages(repeats: int, quick: bool) -> dict:
 
         add("compositing", kind, r, comp, sh.sigma, sh.rgb, seg, slot, live)
         if kind == "render":
-            add("whole render", kind, r, lambda p, sc, ry: render_rays(cfg, p, sc, ry, bg).rgb, params, scene, rays)
+            add("whole render", kind, r, lambda p, sc_, ry: render_rays(cfg, p, sc_, ry, bg).rgb, params, sc, rays)
             return
-        state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
+        state = init_train_state(run.train, cfg, sc.points, jax.random.key(1))
         add("whole forward (render with aux)", kind, r,
-            lambda p, sc, ry: render_rays_with_aux(cfg, p, sc, ry, bg), state.params, scene, rays)
+            lambda p, sc_, ry: render_rays_with_aux(cfg, p, sc_, ry, bg), state.params, sc, rays)
 
-        def fwd_bwd(tr, sc, ry):
+        def fwd_bwd(tr, sc_, ry):
             def f(tr):
-                p = sc.points.replace(**tr["points"])
-                out, a_ = render_rays_with_aux(cfg, tr["params"], sc.replace(points=p), ry, bg)
+                p = sc_.points.replace(**tr["points"])
+                out, a_ = render_rays_with_aux(cfg, tr["params"], sc_.replace(points=p), ry, bg)
                 return jnp.sum(out.rgb) + jnp.sum(a_.weights)
             return jax.grad(f)(tr)
 
-        add("forward + backward (render VJP)", kind, r, fwd_bwd, state.trainables, scene, rays)
+        add("forward + backward (render VJP)", kind, r, fwd_bwd, state.trainables, sc, rays)
         step = make_train_step(run.train, cfg)
         batch = Batch(rays=rays, pixel=jnp.zeros(r, jnp.int32), in_band=jnp.zeros(r, bool), background=bg)
-        t = best_time(lambda: step(state, scene, batch)[1]["loss/total"], repeats)
+        t = best_time(lambda: step(state, sc, batch)[1]["loss/total"], repeats)
         rows.append({"stage": "whole training step", "batch": kind, "rays": r, "ms": 1e3 * t, "gflop": None,
                      "gflop_per_s": None, "vs_matmul": None})
         print(f"train  whole training step {1e3 * t:9.2f} ms", flush=True)

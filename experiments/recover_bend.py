@@ -17,6 +17,7 @@ Writes ``experiments/results/recover_bend.json`` and ``recover_bend.png`` (angle
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 import sys
@@ -38,7 +39,7 @@ from ne_jax.edit.differentiable import (
     make_edit_loss,
     recover_parameter,
 )
-from ne_jax.train.loop import fit_segment_budget, train
+from ne_jax.train.loop import train
 from ne_jax.train.model import load_trained
 from ne_jax.train.run import RunConfig
 
@@ -113,10 +114,9 @@ def main(argv=None) -> dict:
     true = float(np.deg2rad(true_deg))
     start = float(np.deg2rad(true_deg / 2 if args.start_deg is None else args.start_deg))
     problem = make_edit_loss(render_cfg, deform, normals=args.normals)
-    # a segment budget for the rays at the start (grown by recover_parameter if a step needs more)
-    render_cfg = fit_segment_budget(render_cfg, problem.scene(start, points, problem.topology(points, start)), rays,
-                                    headroom=2.0)
-    problem = make_edit_loss(render_cfg, deform, normals=args.normals)
+    # a packing budget for the rays at the start (grown by recover_parameter if a step needs more)
+    start_topology = problem.topology(points, start, capacities=model.run.capacities)
+    capacities = problem.scene(start, points, start_topology).fitted(render_cfg, rays, headroom=2.0).capacities
 
     def report(step, traj):
         th = float(traj.theta[-1][0])
@@ -129,11 +129,12 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     lr = optax.cosine_decay_schedule(args.lr, args.steps, alpha=0.1) if args.schedule == "cosine" else args.lr
     _, traj = recover_parameter(problem, params, points, start, rays, targets, background, steps=args.steps,
-                                    optimizer=optax.adam(lr), rebuild_every=args.rebuild_every, callback=report)
+                                optimizer=optax.adam(lr), rebuild_every=args.rebuild_every, capacities=capacities,
+                                callback=report)
     descent_seconds = time.perf_counter() - t0
     # the loss at the true angle under its own topology, for reference
     problem = traj.problem
-    topo_true = problem.topology(points, true)
+    topo_true = problem.topology(points, true, capacities=traj.capacities)
     (loss_true, _), grad_true = problem.value_and_grad(jnp.float32(true), params, points, topo_true, rays,
                                                        targets, background)
     angles = np.rad2deg([float(t[0]) for t in traj.theta])
@@ -147,7 +148,8 @@ def main(argv=None) -> dict:
         "loss_at_true_angle": float(loss_true), "grad_at_true_angle": float(grad_true),
         "steps": args.steps, "learning_rate": args.lr, "schedule": args.schedule, "rebuild_every": args.rebuild_every,
         "views": views.tolist(), "rays": int(rays.num_rays), "normals": args.normals, "mode": problem.mode,
-        "segments_per_ray": {"start": render_cfg.segments_per_ray, "end": problem.render_cfg.segments_per_ray},
+        "segments_per_ray": {"start": capacities.segments_per_ray, "end": traj.capacities.segments_per_ray},
+        "capacities": {"start": dataclasses.asdict(capacities), "end": dataclasses.asdict(traj.capacities)},
         "descent_seconds": round(descent_seconds, 2), "total_seconds": round(time.perf_counter() - t_start, 2),
         "device": str(jax.devices()[0]), "geometry_check_max_abs": geometry_err,
         "angle_deg": angles.tolist(), "trajectory": traj.to_dict(),

@@ -41,6 +41,7 @@ def worker(points: int, batch: int, res: int, repeats: int) -> dict:
     from ne_jax.data.cameras import orbit_cameras
     from ne_jax.data.rays import Camera, camera_rays
     from ne_jax.devices import default_mesh
+    from ne_jax.geometry.capacity import Capacities
     from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.geometry.points import PointState
     from ne_jax.render.quadrature import QuadratureConfig
@@ -57,10 +58,10 @@ def worker(points: int, batch: int, res: int, repeats: int) -> dict:
     x = rng.normal(size=(points, 3))
     x = 0.9 * x / np.linalg.norm(x, axis=1, keepdims=True) * (1 + 0.03 * rng.normal(size=(points, 1)))
     normal = x / np.linalg.norm(x, axis=1, keepdims=True)
-    tree = KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=16, max_segments=16)
+    tree = KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2)
     cfg = RenderConfig(tree=tree, quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=4096)
     pts = PointState.from_numpy(x, points, cfg.shading.feature_dim, normal=normal, key=jax.random.key(0))
-    scene = PointScene.build(pts, cfg)
+    scene = PointScene.build(pts, cfg, Capacities(frontier=16, max_segments=16))
     tcfg = TrainConfig(total_steps=100)
     state = init_train_state(tcfg, cfg, pts, jax.random.key(1))
     cam = Camera.from_fov(jnp.asarray(orbit_cameras(1, 30.0)[0], jnp.float32), res, res, 0.7)

@@ -262,7 +262,7 @@ def _cmd_view(args) -> int:
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
-        pass
+        print("ne-jax view: stopping (Ctrl+C)")
     finally:
         viewer.stop()
     return 0

@@ -15,10 +15,11 @@ class ConfigError(ValueError):
     """A stored config that names a type outside ``ne_jax`` or one this version does not have."""
 
 
-ADDED_LATER = "added_later"
-"""Metadata flag of a config field added after runs were keyed (``dataclasses.field(metadata=
-{ADDED_LATER: True})``): at its default it is left out of :func:`config_key`, so the keys of runs
-made before it existed stay valid."""
+BUFFER_SIZES = "buffer_sizes"
+"""Metadata flag of a config field that holds buffer sizes, not settings (``dataclasses.field(
+metadata={BUFFER_SIZES: True})``, e.g. ``RunConfig.capacities``): written to ``config.json`` but left
+out of :func:`config_key` and of :func:`config_diff`, since it changes only what is lost to a full
+buffer, which is counted."""
 
 
 def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
@@ -31,7 +32,7 @@ def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
         out = {"__type__": f"{type(cfg).__module__}:{type(cfg).__qualname__}"}
         for f in dataclasses.fields(cfg):
             value = getattr(cfg, f.name)
-            if _for_key and f.metadata.get(ADDED_LATER) and value == f.default:
+            if _for_key and f.metadata.get(BUFFER_SIZES):
                 continue
             out[f.name] = config_to_json(value, _for_key)
         return out
@@ -51,14 +52,44 @@ MOVED = {
 """Config types stored under an older module path -> where they live now (read side only: a run
 directory written before a move still loads and resumes)."""
 
+MOVED_FIELDS = {
+    "ne_jax.geometry.kdtree:KDTreeConfig": {
+        "frontier_capacity": "frontier", "first_pass_frontier": "first_pass_frontier", "retry_share": "retry_share",
+        "max_segments": "max_segments"},
+    "ne_jax.render.renderer:RenderConfig": {"segments_per_ray": "segments_per_ray"},
+}
+"""Buffer sizes stored as fields of a setting's config -> their name in
+``ne_jax.geometry.capacity:Capacities`` (read side only): they move to the root ``RunConfig``'s
+``capacities``, or are dropped where the root is another config."""
+
+_CAPACITIES = "ne_jax.geometry.capacity:Capacities"
+
 
 def _upgrade(data: Any) -> Any:
-    """``data`` with the type names of :data:`MOVED` replaced by the current ones."""
-    if isinstance(data, dict):
-        return {k: MOVED.get(v, v) if k == "__type__" else _upgrade(v) for k, v in data.items()}
-    if isinstance(data, list):
-        return [_upgrade(v) for v in data]
-    return data
+    """``data`` with the type names of :data:`MOVED` replaced by the current ones and the fields of
+    :data:`MOVED_FIELDS` moved to a root ``RunConfig``'s ``capacities``."""
+    moved: dict = {}
+
+    def walk(node):
+        if isinstance(node, dict):
+            kind = MOVED.get(node.get("__type__"), node.get("__type__"))
+            fields = MOVED_FIELDS.get(kind, {})
+            out = {}
+            for k, v in node.items():
+                if k in fields:
+                    moved[fields[k]] = v
+                else:
+                    out[k] = kind if k == "__type__" else walk(v)
+            return out
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+
+    out = walk(data)
+    if moved and isinstance(out, dict) and out.get("__type__") == "ne_jax.train.run:RunConfig" \
+            and "capacities" not in out:
+        out["capacities"] = {"__type__": _CAPACITIES, **moved}
+    return out
 
 
 def _config_type(name: str) -> type:
@@ -80,32 +111,49 @@ def _config_type(name: str) -> type:
 
 def config_key(cfg: Any) -> str:
     """A short hash (12 hex digits) of a whole config: equal for equal configs, different when any
-    field differs (e.g. the cache key of a study's run directory; fields flagged :data:`ADDED_LATER`
-    count only away from their default)."""
+    field differs (e.g. the cache key of a study's run directory; fields flagged
+    :data:`BUFFER_SIZES` do not count)."""
     text = json.dumps(config_to_json(cfg, _for_key=True), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
 def config_from_json(data: Any) -> Any:
-    """Inverse of :func:`config_to_json`; only ``ne_jax`` dataclasses are rebuilt.
+    """Inverse of :func:`config_to_json`; only ``ne_jax`` dataclasses are rebuilt (configs stored by
+    an older layout are upgraded first: :data:`MOVED`, :data:`MOVED_FIELDS`).
 
     Raises:
         ConfigError: for a type outside ``ne_jax`` or one that no longer exists."""
+    return _from_json(_upgrade(data))
+
+
+def _from_json(data: Any) -> Any:
     if isinstance(data, dict) and "__tuple__" in data:
-        return tuple(config_from_json(v) for v in data["__tuple__"])
+        return tuple(_from_json(v) for v in data["__tuple__"])
     if isinstance(data, dict) and "__type__" in data:
-        fields = {k: config_from_json(v) for k, v in data.items() if k != "__type__"}
-        return _config_type(MOVED.get(data["__type__"], data["__type__"]))(**fields)
+        fields = {k: _from_json(v) for k, v in data.items() if k != "__type__"}
+        return _config_type(data["__type__"])(**fields)
     if isinstance(data, list):
-        return [config_from_json(v) for v in data]
+        return [_from_json(v) for v in data]
     return data
+
+
+def _field(node: dict, name: str):
+    """The dataclass field ``name`` of the encoded dataclass ``node`` (``None`` if unknown)."""
+    try:
+        return {f.name: f for f in dataclasses.fields(_config_type(node["__type__"]))}.get(name)
+    except (KeyError, TypeError, ConfigError):
+        return None
+
+
+def _is_buffer_sizes(node: Any, name: str) -> bool:
+    field = _field(node, name) if isinstance(node, dict) else None
+    return bool(field is not None and field.metadata.get(BUFFER_SIZES))
 
 
 def _is_default(node: dict, name: str) -> bool:
     """Whether field ``name`` of the encoded dataclass ``node`` holds the dataclass's default."""
-    try:
-        field = {f.name: f for f in dataclasses.fields(_config_type(node["__type__"]))}[name]
-    except (KeyError, TypeError, ConfigError):
+    field = _field(node, name)
+    if field is None:
         return False
     if field.default is not dataclasses.MISSING:
         default = field.default
@@ -127,6 +175,8 @@ def config_diff(found: Any, expected: Any, prefix: str = "") -> list[str]:
         out = []
         for k in sorted(set(found) | set(expected), key=str):
             name = f"{prefix}.{k}" if prefix else str(k)
+            if _is_buffer_sizes(expected, k):
+                continue
             if k not in found:
                 if _is_default(expected, k):  # a field added later, at its default: same config
                     continue

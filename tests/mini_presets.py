@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 from ne_jax.benchmark.generate import BenchmarkPreset
+from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.pointcloud.optimise import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig
@@ -34,10 +35,14 @@ GEN_SCENES = mini_benchmark(resolution=16, train_views=3, test_views=2, detail=0
 
 
 def tiny_tree(**changes) -> KDTreeConfig:
-    """Small tree capacities for tests and toy scenes (16 candidates, K = 8, 2 rendering levels, 16
-    frontier and segment slots), with ``changes``."""
-    return KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=16,
-                        max_segments=16).replace(**changes)
+    """A small tree for tests and toy scenes (16 candidates, K = 8, 2 rendering levels), with
+    ``changes``."""
+    return KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2).replace(**changes)
+
+
+def tiny_caps(**changes) -> Capacities:
+    """Small buffers for tests and toy scenes (16 frontier and segment slots), with ``changes``."""
+    return Capacities(frontier=16, max_segments=16).replace(**changes)
 
 
 def tiny_render(**changes) -> RenderConfig:
@@ -48,9 +53,12 @@ def tiny_render(**changes) -> RenderConfig:
 
 
 def mini_render(**changes) -> RenderConfig:
-    """:func:`tiny_render` with 24 segments per ray and 3, 4, 5 samples per level, and ``changes``."""
-    return tiny_render(tree=tiny_tree(max_segments=24),
-                       quadrature=QuadratureConfig(samples_per_level=(3, 4, 5))).replace(**changes)
+    """:func:`tiny_render` with 3, 4, 5 samples per level, and ``changes``."""
+    return tiny_render(quadrature=QuadratureConfig(samples_per_level=(3, 4, 5))).replace(**changes)
+
+
+MINI_CAPS = tiny_caps(max_segments=24)
+"""The buffers :func:`mini_run` starts with (16 frontier nodes, 24 segment slots)."""
 
 
 def mini_init(*, resolution: int = 48, num_points: int = 1500) -> InitConfig:
@@ -62,7 +70,7 @@ def mini_run(**changes) -> RunConfig:
     """A training run of 3 epochs x 3 steps of 128 rays on :func:`mini_render`, point-cloud rounds
     after epochs 1 and 2, with ``changes`` (:meth:`RunConfig.replace`: the schedule follows the
     length)."""
-    run = RunConfig(name="test", render=mini_render(), sampler=SamplerConfig(batch_size=128),
+    run = RunConfig(name="test", render=mini_render(), capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
                     train=TrainConfig(lr=5e-3), init=mini_init(),
                     points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
                     epochs=3, steps_per_epoch=3, point_rounds=(1, 2), log_every=2)
@@ -76,4 +84,5 @@ def short_run(**changes) -> RunConfig:
                     point_rounds=(1, 0)).replace(**changes)
 
 
-__all__ = ["GEN_SCENES", "TRAIN_SCENE", "mini_benchmark", "mini_init", "mini_render", "mini_run", "short_run"]
+__all__ = ["GEN_SCENES", "MINI_CAPS", "TRAIN_SCENE", "mini_benchmark", "mini_init", "mini_render", "mini_run",
+           "short_run", "tiny_caps", "tiny_render", "tiny_tree"]

@@ -51,9 +51,10 @@ from ne_jax.compiles import count_compiles
 from ne_jax.data.rays import Rays
 from ne_jax.edit.apply import EditConfig, EditPlan, edited_points, plan_edit
 from ne_jax.edit.deformations import bend_points, jacobian_normals
+from ne_jax.geometry.capacity import Capacities, grow
 from ne_jax.geometry.kdtree import KDTree, build_tree
 from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import PointScene, RenderConfig, grown_config, render_rays
+from ne_jax.render.renderer import PointScene, RenderConfig, render_rays
 
 Deformation = Callable[[Any, jax.Array], jax.Array]
 """``deform(theta, xyz [C, 3]) -> [C, 3]``, pure ``jax.numpy``, differentiable in ``theta``."""
@@ -70,12 +71,15 @@ def bend_deformation(center, along, toward, length: float) -> Deformation:
 @struct.dataclass
 class EditTopology:
     """What a gradient holds fixed: the edit's plan and the K-D tree of the edited cloud, both built
-    on the host at one estimate ``theta`` (:meth:`EditLoss.topology`)."""
+    on the host at one estimate ``theta`` (:meth:`EditLoss.topology`), and the buffer sizes the
+    edited scene renders with (static; grown by :func:`recover_parameter` when a render loses
+    segments)."""
 
     plan: EditPlan
     tree: KDTree
     xyz: jax.Array | None = None
     """``[C, 3]`` edited positions the tree was built on (the reference of :func:`follow_boxes`)."""
+    capacities: Capacities = struct.field(pytree_node=False, default=Capacities())
 
 
 def _level_bounds(tree: KDTree, xyz: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -140,16 +144,17 @@ class EditLoss:
     loss: Callable
     value_and_grad: Callable
 
-    def topology(self, points: PointState, theta, deleted=None) -> EditTopology:
+    def topology(self, points: PointState, theta, deleted=None,
+                 capacities: Capacities = Capacities()) -> EditTopology:
         """Host side: plan the edit ``points -> deform(theta, points.xyz)`` (deleting ``deleted [C]``,
         decided in the original space and independent of ``theta``) and build the K-D tree of the
-        edited cloud at this estimate."""
+        edited cloud at this estimate, to render with ``capacities``."""
         xyz = np.asarray(self.deform(theta, points.xyz))
         deleted = np.zeros(points.capacity, bool) if deleted is None else np.asarray(deleted, bool)
         plan = plan_edit(self.edit_cfg, points, xyz, deleted)
         edited = self.scene(theta, points, EditTopology(plan=plan, tree=None))
         tree = build_tree(np.asarray(edited.points.xyz), np.asarray(edited.points.alive), self.render_cfg.tree)
-        return EditTopology(plan=plan, tree=tree, xyz=edited.points.xyz)
+        return EditTopology(plan=plan, tree=tree, xyz=edited.points.xyz, capacities=capacities)
 
 
 def make_edit_loss(render_cfg: RenderConfig, deform: Deformation, edit_cfg: EditConfig = EditConfig(),
@@ -161,7 +166,7 @@ def make_edit_loss(render_cfg: RenderConfig, deform: Deformation, edit_cfg: Edit
     positions ``deform(theta, points.xyz)``, to the edited state (:func:`~ne_jax.edit.apply.edited_points`:
     IST under ``topology.plan``), renders ``rays`` (``[R]``) through ``topology.tree`` with colour
     model ``params`` and returns the mean squared error against ``targets [R, 3]`` (over rays and
-    channels) and the :class:`~ne_jax.render.renderer.RenderOut` (check ``dropped``/``overflow``).
+    channels) and the :class:`~ne_jax.render.renderer.RenderOut` (check its ``lost``).
     ``points`` is the *unedited* model's state.
 
     ``mode``: how ``value_and_grad`` differentiates. ``"forward"`` (default): one JVP per scalar in
@@ -196,7 +201,7 @@ def make_edit_loss(render_cfg: RenderConfig, deform: Deformation, edit_cfg: Edit
         tree = topology.tree
         if boxes and tree is not None:
             tree = follow_boxes(tree, edited.xyz, topology.xyz)
-        return PointScene(points=edited, tree=tree)
+        return PointScene(points=edited, tree=tree, capacities=topology.capacities)
 
     def loss(theta, params, points, topology, rays: Rays, targets, background):
         out = render_rays(render_cfg, params, scene(theta, points, topology), rays, background)
@@ -230,23 +235,24 @@ class Trajectory:
         loss: MSE at each estimate (under the topology in force at that step).
         grad: gradient w.r.t. ``theta`` at each estimate.
         rebuilt: whether the plan and tree were rebuilt at that step (at that estimate).
-        dropped, overflow: segments lost by the render at that step, after any growth (0: complete).
+        lost: what the render lost at that step, after any growth
+            (:class:`~ne_jax.geometry.capacity.LostCounts` as a dict; ``total`` 0: complete).
         grown: whether the render's capacities were grown at that step (a recompilation).
         seconds: wall time since the start, at the end of each step.
         compiles: compilations of the loss's ``value_and_grad`` over the descent.
-        problem: the :class:`EditLoss` in force at the end (its render config's capacities grown or
-            not; its compiled ``value_and_grad`` warm).
+        capacities: the capacities in force at the end.
+        problem: the :class:`EditLoss` (its compiled ``value_and_grad`` warm).
     """
 
     theta: list = dataclasses.field(default_factory=list)
     loss: list = dataclasses.field(default_factory=list)
     grad: list = dataclasses.field(default_factory=list)
     rebuilt: list = dataclasses.field(default_factory=list)
-    dropped: list = dataclasses.field(default_factory=list)
-    overflow: list = dataclasses.field(default_factory=list)
+    lost: list = dataclasses.field(default_factory=list)
     grown: list = dataclasses.field(default_factory=list)
     seconds: list = dataclasses.field(default_factory=list)
     compiles: int = 0
+    capacities: Capacities | None = None
     problem: EditLoss | None = None
 
     def to_dict(self) -> dict:
@@ -255,8 +261,8 @@ class Trajectory:
             return [np.asarray(x, np.float64).ravel().tolist() for x in xs]
 
         return {"theta": flat(self.theta), "loss": [float(v) for v in self.loss], "grad": flat(self.grad),
-                "rebuilt": [bool(v) for v in self.rebuilt], "dropped": [int(v) for v in self.dropped],
-                "overflow": [int(v) for v in self.overflow], "grown": [bool(v) for v in self.grown],
+                "rebuilt": [bool(v) for v in self.rebuilt], "lost": list(self.lost),
+                "grown": [bool(v) for v in self.grown],
                 "seconds": [round(float(v), 3) for v in self.seconds],
                 "compiles": int(self.compiles)}
 
@@ -264,15 +270,17 @@ class Trajectory:
 def recover_parameter(problem: EditLoss, params, points: PointState, theta0, rays: Rays, targets, background, *,
                       deleted=None, steps: int = 40, optimizer: optax.GradientTransformation | None = None,
                       learning_rate: float = 0.05, rebuild_every: int = 5, max_grow: int = 3,
+                      capacities: Capacities = Capacities(),
                       callback: Callable[[int, Trajectory], None] | None = None) -> tuple[Any, Trajectory]:
     """Gradient descent on ``theta`` to fit the edited model's render of ``rays`` to ``targets``.
 
     Every ``rebuild_every`` steps (and at the start) the edit's plan and the K-D tree are rebuilt on
     the host at the current estimate (:meth:`EditLoss.topology`); in between, and inside every
     gradient, that topology is held constant: the gradient is that of the loss under the current
-    topology, not of the (piecewise constant in the topology) true loss. A render that loses
-    segments (``dropped``/``overflow``) is re-run with grown capacities (one more compilation each,
-    at most ``max_grow`` times); losses that remain are recorded in the trajectory.
+    topology, not of the (piecewise constant in the topology) true loss. The edited scene renders
+    with ``capacities``; a render that loses segments is re-run with them grown
+    (:func:`~ne_jax.geometry.capacity.grow`; one more compilation each, at most ``max_grow`` times),
+    and later steps keep the grown ones; losses that remain are recorded in the trajectory.
 
     Args:
         problem: from :func:`make_edit_loss`.
@@ -300,18 +308,17 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
     for step in range(steps + 1):
         rebuild = topology is None or (rebuild_every > 0 and step % rebuild_every == 0)
         if rebuild:
-            topology = problem.topology(points, theta, deleted)
+            topology = problem.topology(points, theta, deleted, capacities)
         with count_compiles() as compiled:  # around fn only: topology and updates compile eager operations
             (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
         traj.compiles += compiled.count
         grown = False
         for _ in range(max_grow):
-            bigger = grown_config(problem.render_cfg, out)
+            bigger = grow(capacities, out.lost)
             if bigger is None:
                 break
-            problem = make_edit_loss(bigger, problem.deform, problem.edit_cfg, problem.normals, problem.mode,
-                                     problem.boxes)
-            fn, grown = problem.value_and_grad, True
+            capacities, grown = bigger, True
+            topology = topology.replace(capacities=capacities)
             with count_compiles() as compiled:
                 (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
             traj.compiles += compiled.count
@@ -319,8 +326,7 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
         traj.loss.append(float(value))
         traj.grad.append(np.asarray(ravel_pytree(grad)[0]))
         traj.rebuilt.append(bool(rebuild))
-        traj.dropped.append(int(jnp.sum(out.dropped)))
-        traj.overflow.append(int(jnp.sum(out.overflow)))
+        traj.lost.append(out.lost.counts().as_dict())
         traj.grown.append(grown)
         traj.seconds.append(time.perf_counter() - t0)
         if callback is not None:
@@ -329,7 +335,7 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
             break
         updates, opt_state = optimizer.update(grad, opt_state, theta)
         theta = optax.apply_updates(theta, updates)
-    traj.problem = problem
+    traj.capacities, traj.problem = capacities, problem
     return theta, traj
 
 

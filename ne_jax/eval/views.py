@@ -73,13 +73,13 @@ def _ray_image(cfg, params, scene, camera, background, near, far):
 
 def _render_all(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Sequence[Camera], background,
                 near: float, far: float, progress: bool, desc: str, image_fn=None) -> tuple[np.ndarray, np.ndarray]:
-    """Images ``[N, H, W, 3]`` float32 and the segments each view lost ``[N]`` (overflow + dropped)."""
+    """Images ``[N, H, W, 3]`` float32 and the segments each view lost ``[N]`` (``RenderOut.lost.count``)."""
     bg = parse_background(background)
     image_fn = _ray_image if image_fn is None else image_fn
     images, lost = [], []
     for cam in tqdm(cameras, desc=desc, unit="view", disable=not progress):
         out = image_fn(cfg, params, scene, cam, bg, near, far)
-        rgb, n_lost = jax.device_get((out.rgb, out.overflow.sum() + out.dropped.sum()))
+        rgb, n_lost = jax.device_get((out.rgb, out.lost.count.sum()))
         images.append(np.asarray(rgb, np.float32))
         lost.append(int(n_lost))
     if not images:

@@ -27,13 +27,14 @@ mapped into that frame (``x -> frame_rot @ x + frame_shift``, a similarity, so `
 meaning) before the slab test, and a ray is cut where the same ray was cut before the edit. A built
 tree has no frames and traces none of this.
 
-Capacities are static (``cfg.frontier_capacity``, ``cfg.max_segments``); what does not fit is
-counted per ray (``frontier_overflow``: nodes dropped from a frontier, whose whole subtree is lost;
-``segment_overflow``: emitted segments beyond the slots). ``intersect_checked`` (host) re-allocates
-and retries until nothing overflows. With ``cfg.first_pass_frontier`` every ray is walked at that
-narrower width first and only the rays that overflow it are walked again at full width (a share
-``cfg.retry_share`` of the call's rays at most), which gives the full width's segments at a
-fraction of its cost.
+Buffer sizes come from :class:`~ne_jax.geometry.capacity.Capacities` (``frontier``,
+``max_segments``; static); what does not fit is counted per ray (``frontier_overflow``: nodes dropped
+from a frontier, whose whole subtree is lost; ``segment_overflow``: emitted segments beyond the
+slots; :meth:`Segments.lost`). ``intersect_checked`` (host) grows them with
+:func:`~ne_jax.geometry.capacity.grow` and retries until nothing is lost. With
+``first_pass_frontier`` every ray is walked at that narrower width first and only the rays that
+overflow it are walked again at full width (a share ``retry_share`` of the call's rays at most),
+which gives the full width's segments at a fraction of its cost.
 """
 
 from __future__ import annotations
@@ -43,11 +44,11 @@ import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 from jax import lax
 
 from ne_jax.data.rays import Rays
+from ne_jax.geometry.capacity import Capacities, Lost, grow
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig
 from ne_jax.numerics import safe_reciprocal, tiny
 
@@ -84,6 +85,13 @@ class Segments:
     @property
     def num_segments(self) -> jax.Array:
         return jnp.sum(self.valid, axis=-1)
+
+    def lost(self, packing: jax.Array | None = None) -> Lost:
+        """What the traversal lost, per ray, plus ``packing`` ``[R]`` segments a later packing
+        dropped (default none)."""
+        return Lost(frontier=self.frontier_overflow, slots=self.segment_overflow,
+                    packing=jnp.zeros_like(self.num_emitted) if packing is None else packing,
+                    emitted=self.num_emitted)
 
 
 def slab_intersect(lo, hi, origin, inv_dir, parallel, near, far, min_len):
@@ -139,10 +147,10 @@ def _ray_in_frame(tree: KDTree, node, origin, direction):
     return o, inv, par
 
 
-def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig, first_emit: int, f_cap: int):
+def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig, first_emit: int, f_cap: int,
+                  m_cap: int):
     dtype = origin.dtype
     depth = tree.depth
-    m_cap = cfg.max_segments
     par, inv = _parallel_and_inverse(direction)
     min_len = (cfg.min_hit_factor * tree.spacing).astype(dtype)
     world = (origin, inv, par)
@@ -253,11 +261,12 @@ def _check_rays(rays: Rays):
             raise ValueError(f"rays.{name}: expected shape [R={o.shape[0]}], found shape {a.shape}")
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "include_grow_level"))
+@functools.partial(jax.jit, static_argnames=("cfg", "capacities", "include_grow_level"))
 def intersect(tree: KDTree, rays: Rays, cfg: KDTreeConfig = KDTreeConfig(),
-              include_grow_level: bool = False) -> Segments:
-    """Minimal intersected voxels of every ray (see the module docstring). Jit-compiled; ``cfg``
-    and ``include_grow_level`` (also emit the growing level's minimal voxels) are static.
+              capacities: Capacities = Capacities(), include_grow_level: bool = False) -> Segments:
+    """Minimal intersected voxels of every ray (see the module docstring). Jit-compiled; ``cfg``,
+    ``capacities`` (the frontier and segment slots; its packing budget is not read here) and
+    ``include_grow_level`` (also emit the growing level's minimal voxels) are static.
 
     Args:
         tree: from :func:`~ne_jax.geometry.kdtree.build_tree` (``cfg.num_render_levels`` must match).
@@ -272,16 +281,18 @@ def intersect(tree: KDTree, rays: Rays, cfg: KDTreeConfig = KDTreeConfig(),
     first = tree.depth - cfg.num_render_levels - (1 if include_grow_level else 0)
     dtype = rays.origin.dtype
     args = (rays.origin, rays.direction.astype(dtype), rays.near.astype(dtype), rays.far.astype(dtype))
+    cap = capacities
 
     def walk(width, *ray_args):
-        return Segments(*jax.vmap(lambda o, d, n, f: _traverse_one(tree, o, d, n, f, cfg, first, width))(*ray_args))
+        return Segments(*jax.vmap(
+            lambda o, d, n, f: _traverse_one(tree, o, d, n, f, cfg, first, width, cap.max_segments))(*ray_args))
 
-    if cfg.first_pass_frontier is None:
-        return walk(cfg.frontier_capacity, *args)
-    narrow = walk(cfg.first_pass_frontier, *args)
+    if cap.first_pass_frontier is None:
+        return walk(cap.frontier, *args)
+    narrow = walk(cap.first_pass_frontier, *args)
     n = rays.num_rays
-    retry = jnp.nonzero(narrow.frontier_overflow > 0, size=min(n, math.ceil(cfg.retry_share * n)), fill_value=n)[0]
-    wide = walk(cfg.frontier_capacity, *(a[jnp.minimum(retry, n - 1)] for a in args))
+    retry = jnp.nonzero(narrow.frontier_overflow > 0, size=min(n, math.ceil(cap.retry_share * n)), fill_value=n)[0]
+    wide = walk(cap.frontier, *(a[jnp.minimum(retry, n - 1)] for a in args))
     # unused retry slots hold index n: their writes are dropped
     return jax.tree_util.tree_map(lambda a, b: a.at[retry].set(b, mode="drop"), narrow, wide)
 
@@ -290,31 +301,22 @@ def intersect_checked(
     tree: KDTree,
     rays: Rays,
     cfg: KDTreeConfig = KDTreeConfig(),
+    capacities: Capacities = Capacities(),
     include_grow_level: bool = False,
     max_tries: int = 8,
-) -> tuple[Segments, KDTreeConfig]:
-    """Host-side: run :func:`intersect`, and while any ray overflows, re-allocate and retry.
-
-    On frontier overflow a two-pass walk retries twice the share of rays, then the frontier capacity
-    doubles (:meth:`KDTreeConfig.widened`); the segment slots grow to the next power of two above
-    the largest count found. Returns the complete segments
-    and the config that fit (reuse it for later batches: the same capacities mean no recompilation).
+) -> tuple[Segments, Capacities]:
+    """Host-side: run :func:`intersect`, and while any ray loses something, grow the capacities
+    (:func:`~ne_jax.geometry.capacity.grow`) and retry. Returns the complete segments and the
+    capacities that fit (reuse them for later batches: the same capacities mean no recompilation).
 
     Raises:
-        RuntimeError: still overflowing after ``max_tries`` attempts.
+        RuntimeError: still losing segments after ``max_tries`` attempts.
     """
+    cap = capacities
     for _ in range(max_tries):
-        seg = intersect(tree, rays, cfg, include_grow_level)
-        f_over = int(jnp.max(seg.frontier_overflow))
-        s_over = int(jnp.max(seg.segment_overflow))
-        if f_over == 0 and s_over == 0:
-            return seg, cfg
-        if f_over > 0:
-            cfg = cfg.widened()
-        if s_over > 0:
-            need = int(jnp.max(seg.num_emitted))
-            cfg = cfg.replace(max_segments=max(2 * cfg.max_segments, int(2 ** np.ceil(np.log2(need)))))
-    raise RuntimeError(
-        f"intersect_checked: still overflowing after {max_tries} tries "
-        f"(frontier_capacity={cfg.frontier_capacity}, max_segments={cfg.max_segments})"
-    )
+        seg = intersect(tree, rays, cfg, cap, include_grow_level)
+        bigger = grow(cap, seg.lost())
+        if bigger is None:
+            return seg, cap
+        cap = bigger
+    raise RuntimeError(f"intersect_checked: still losing segments after {max_tries} tries ({cap})")

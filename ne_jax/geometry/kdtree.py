@@ -58,11 +58,14 @@ import numpy as np
 from flax import struct
 from scipy.spatial import cKDTree
 
+from ne_jax.fields import require
+
 
 @dataclasses.dataclass(frozen=True)
 class KDTreeConfig:
     """Static settings of the K-D tree, its traversal and the KNN interpolation (hashable: pass it
-    as a static argument). Presets: :meth:`tiny`, :meth:`default`, :meth:`paper`."""
+    as a static argument). The traversal's buffer sizes are not settings: they are
+    :class:`~ne_jax.geometry.capacity.Capacities`, carried by the scene."""
 
     depth: int | None = None
     """Tree depth ``D`` (``2**D`` point slots, ``D + 1`` levels, level ``D`` = single-point leaves).
@@ -119,24 +122,6 @@ class KDTreeConfig:
     """Distance offset in the KNN weights, in units of ``spacing`` (released code:
     ``1e-3 * unit_len``): ``log(dist + eps)`` stays finite at a point."""
 
-    frontier_capacity: int = 64
-    """Nodes kept per ray and level during traversal; more are dropped and counted as overflow."""
-
-    # "added_later" (ne_jax.config_json.ADDED_LATER): left out of run keys at the default
-    first_pass_frontier: int | None = dataclasses.field(default=None, metadata={"added_later": True})
-    """Two-pass traversal (None: one pass): every ray is walked first with this narrower frontier,
-    and the rays that overflow it are walked again at ``frontier_capacity``, at most
-    ``ceil(retry_share * R)`` of them per call (the first ones). While the retries fit, the segments
-    equal a single pass at ``frontier_capacity``; a ray beyond the share keeps the narrow pass's
-    segments and its overflow is counted. Most rays of a surface-like cloud need few nodes per
-    level, and the traversal's cost follows the frontier's width."""
-
-    retry_share: float = dataclasses.field(default=1.0 / 16.0, metadata={"added_later": True})
-    """Two-pass traversal: the share of a call's rays that may be walked again at full width."""
-
-    max_segments: int = 32
-    """Segment slots per ray in :class:`~ne_jax.geometry.intersect.Segments`; more are counted."""
-
     exact_chunk: int = 256
     """Samples per chunk in the brute-force exact KNN mode (memory: ``chunk * C`` distances)."""
 
@@ -145,8 +130,7 @@ class KDTreeConfig:
 
     def __post_init__(self):
         def need(cond, name, expected):
-            if not cond:
-                raise ValueError(f"KDTreeConfig.{name}: expected {expected}, found {getattr(self, name)!r}")
+            require(self, cond, name, expected)
 
         need(self.num_render_levels >= 1, "num_render_levels", "an integer >= 1")
         need(self.max_depth >= self.num_render_levels + 1, "max_depth", ">= num_render_levels + 1")
@@ -168,12 +152,6 @@ class KDTreeConfig:
         need(self.fallback_spacing > 0, "fallback_spacing", "> 0")
         need(self.min_hit_factor >= 0, "min_hit_factor", ">= 0")
         need(self.knn_eps_factor > 0, "knn_eps_factor", "> 0")
-        need(self.frontier_capacity >= 2, "frontier_capacity", "an integer >= 2")
-        if self.first_pass_frontier is not None:
-            need(2 <= self.first_pass_frontier < self.frontier_capacity, "first_pass_frontier",
-                 f"None or an integer in [2, frontier_capacity) = [2, {self.frontier_capacity})")
-        need(0 < self.retry_share <= 1, "retry_share", "a share in (0, 1]")
-        need(self.max_segments >= 1, "max_segments", "an integer >= 1")
         need(self.exact_chunk >= 1, "exact_chunk", "an integer >= 1")
 
     @property
@@ -183,13 +161,6 @@ class KDTreeConfig:
 
     def replace(self, **changes) -> KDTreeConfig:
         return dataclasses.replace(self, **changes)
-
-    def widened(self) -> KDTreeConfig:
-        """The traversal after a frontier overflow: a two-pass walk retries twice the share of rays
-        (up to all of them) before the frontier doubles."""
-        if self.first_pass_frontier is not None and self.retry_share < 1:
-            return self.replace(retry_share=min(1.0, 2 * self.retry_share))
-        return self.replace(frontier_capacity=2 * self.frontier_capacity)
 
 
 @struct.dataclass

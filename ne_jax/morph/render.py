@@ -67,7 +67,7 @@ def render_morph(pair: MorphPair, path: Sequence[np.ndarray], camera: Camera | S
         edits: dict = {}
         scene = morph_scene(pair, cloud, edit, report=edits)
         out = render_image(pair.render, pair.params(r), scene, cam, bg, near, far, progress=False)
-        rgb, lost = jax.device_get((out.rgb, out.overflow.sum() + out.dropped.sum()))
+        rgb, lost = jax.device_get((out.rgb, out.lost.count.sum()))
         frames.append(np.asarray(rgb, np.float32))
         reports.append({"ratio": round(float(r), 6), "seconds": round(time.perf_counter() - t0, 3),
                         "lost_segments": int(lost),

@@ -38,6 +38,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ne_jax.data.rays import Rays
+from ne_jax.fields import require
+from ne_jax.geometry.capacity import LostCounts
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.knn import interpolate, knn_neighbors
 from ne_jax.geometry.points import PointState
@@ -45,7 +47,7 @@ from ne_jax.pointcloud.init import Views
 from ne_jax.pointcloud.neighbours import statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import at_test_time, level_samples
-from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, values_needed
+from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, until_complete, values_needed
 from ne_jax.render.shading import shade
 
 
@@ -88,8 +90,7 @@ class PointOptConfig:
 
     def __post_init__(self):
         def need(cond, name, expected):
-            if not cond:
-                raise ValueError(f"PointOptConfig.{name}: expected {expected}, found {getattr(self, name)!r}")
+            require(self, cond, name, expected)
 
         need(self.grow_rays >= 1, "grow_rays", "an integer >= 1")
         need(self.grow_chunk >= 1, "grow_chunk", "an integer >= 1")
@@ -121,10 +122,12 @@ def scan_growth(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
     the densest sample's position, its interpolated feature, its density (per spacing), whether it
     is a candidate (density at least ``min_sigma`` and at least ``min_distance`` spacings from its
     nearest point), and the ray's photometric error (mean squared RGB error of a render,
-    ``rays.target`` holding the colour on the background) -- the candidate's priority.
+    ``rays.target`` holding the colour on the background) -- the candidate's priority; and what the
+    scan's traversal and the render lost to the scene's capacities (``lost``, ``render_lost``:
+    :class:`~ne_jax.geometry.capacity.Lost`, ``[R]`` per field).
     """
     tree, pts = scene.tree, scene.points
-    seg = intersect(tree, rays, cfg.tree, include_grow_level=True)  # [R, M]
+    seg = intersect(tree, rays, cfg.tree, scene.capacities, include_grow_level=True)  # [R, M]
     level_index = (tree.depth - 1) - seg.level  # 0 = bottom rendering level, L = growing level
     t, w = level_samples(cfg.quadrature, seg.t_lo, seg.t_hi, level_index)  # [R, M, S]
     pos = rays.origin[:, None, None, :] + t[..., None] * rays.direction[:, None, None, :]
@@ -139,10 +142,10 @@ def scan_growth(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
     take = lambda a: jnp.take_along_axis(a.reshape(a.shape[0], -1, *a.shape[3:]),  # noqa: E731
                                          best.reshape((-1, 1) + (1,) * (a.ndim - 3)), axis=1)[:, 0]
     found = (jnp.max(score, axis=-1) >= min_sigma) & (take(nearest) >= min_distance * tree.spacing)  # ... in a gap
-    rgb = render_rays(cfg, params, scene, rays, background).rgb
-    error = jnp.mean(jnp.square(rgb - rays.target[:, :3]), axis=-1)
+    rendered = render_rays(cfg, params, scene, rays, background)
+    error = jnp.mean(jnp.square(rendered.rgb - rays.target[:, :3]), axis=-1)
     out = {"xyz": take(pos), "feature": take(values["feature"]), "sigma": take(sigma), "found": found,
-           "error": error}
+           "error": error, "lost": seg.lost(), "render_lost": rendered.lost}
     if "ist" in values:  # an edited model: new points take the interpolated IST
         out["ist"] = take(values["ist"])
     return out
@@ -208,20 +211,30 @@ def resize_capacity(points: PointState, capacity: int) -> PointState:
 
 
 def grow_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
-                rays: Rays, background) -> tuple[PointState, dict]:
-    """Scan ``rays`` (``[R]``, targets set) in chunks, select and add the new points.
+                rays: Rays, background, max_grow: int = 4) -> tuple[PointState, dict]:
+    """Scan ``rays`` (``[R]``, targets set) in chunks, select and add the new points. A chunk that
+    lost segments to the scene's capacities is scanned again with them grown
+    (:meth:`~ne_jax.render.renderer.PointScene.grown`, at most ``max_grow`` times).
     Returns ``(points, report)``; the report counts rays scanned, candidates found and points added,
-    and whether the capacity was re-allocated."""
+    whether the point capacity was re-allocated, what was still lost (``lost``, as
+    :class:`~ne_jax.geometry.capacity.LostCounts`) and the capacities the scan ended with."""
     render_cfg = render_cfg.replace(quadrature=at_test_time(render_cfg.quadrature))  # no jitter in the scan
     n = rays.num_rays
     chunk = min(cfg.grow_chunk, n)
     pad = (-n) % chunk
     padded = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), rays)
-    parts = []
+    parts, lost = [], LostCounts()
+
+    def lost_of(out):  # the scan's traversal and its render, one transfer each
+        return out["lost"].counts() + out["render_lost"].counts()
+
     for s in range(0, n + pad, chunk):
         part = jax.tree_util.tree_map(operator.itemgetter(slice(s, s + chunk)), padded)
-        parts.append(jax.device_get(scan_growth(render_cfg, params, scene, part, background,
-                                                cfg.grow_min_distance, cfg.grow_min_sigma)))
+        out, scene = until_complete(
+            scene, lambda sc, part=part: scan_growth(render_cfg, params, sc, part, background, cfg.grow_min_distance,
+                                                      cfg.grow_min_sigma), lost_of, max_grow)
+        lost += lost_of(out)
+        parts.append(jax.device_get({k: v for k, v in out.items() if k not in ("lost", "render_lost")}))
     scan = {k: np.concatenate([p[k] for p in parts])[:n] for k in parts[0]}
     found = np.flatnonzero(scan["found"])
     alive = int(np.asarray(scene.points.alive).sum())
@@ -233,7 +246,8 @@ def grow_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, sce
                                headroom=cfg.capacity_headroom, ist=scan["ist"][pick] if "ist" in scan else None)
     report = {"rays": int(n), "candidates": int(found.size), "added": int(pick.size),
               "capacity_before": capacity, "capacity_after": points.capacity,
-              "reallocated": points.capacity != capacity}
+              "reallocated": points.capacity != capacity, "lost": lost.as_dict(),
+              "capacities": dataclasses.asdict(scene.capacities)}
     return points, report
 
 

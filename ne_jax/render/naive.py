@@ -63,6 +63,7 @@ import numpy as np
 from jax import lax
 
 from ne_jax.data.rays import Camera, camera_rays
+from ne_jax.geometry.capacity import Lost
 from ne_jax.geometry.points import PointState
 from ne_jax.numerics import safe_div, safe_normalize
 from ne_jax.render.composite import TAU_MAX
@@ -182,11 +183,10 @@ def _naive_plot(cfg: RenderConfig, params, points: PointState, camera: Camera, b
     else:
         normal = jnp.zeros_like(color)
     count = per_pixel(valid.astype(jnp.int32))
-    zeros = jnp.zeros((npix,), jnp.int32)
     def img(a):
         return a.reshape((h, w) + a.shape[1:])
     return RenderOut(rgb=img(color), opacity=img(opacity), depth=img(depth), normal=img(normal),
-                     num_segments=img(count), overflow=img(zeros), dropped=img(zeros))
+                     num_segments=img(count), lost=Lost.none((h, w)))
 
 
 def naive_plot_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
@@ -194,7 +194,7 @@ def naive_plot_image(cfg: RenderConfig, params: dict, scene: PointScene, camera:
     """Render ``camera`` by Naive Plotting (module docstring): the inputs and outputs of
     :func:`~ne_jax.render.renderer.render_image`, fields image-shaped (``rgb`` ``[H, W, 3]``,
     ``opacity``/``depth`` ``[H, W]``, ``normal`` ``[H, W, 3]``); ``num_segments`` ``[H, W]`` counts the
-    points composited in each pixel; ``overflow``/``dropped`` are zeros (nothing is lost to a capacity).
+    points composited in each pixel; ``lost`` is zeros (nothing is lost to a capacity).
 
     ``background``: ``[3]`` constant colour, or per pixel ``[H, W, 3]`` / ``[H * W, 3]`` (the sphere
     background ignores it). ``splat_radius``:

@@ -59,6 +59,7 @@ from tqdm.auto import tqdm
 from ne_jax.checks import stage_check, throw
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.devices import default_mesh, padded_size, shard_rays
+from ne_jax.geometry.capacity import BUFFERS, Capacities, Lost, LostCounts, fit_packing, grow
 from ne_jax.geometry.carry import carry_tree
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
@@ -74,10 +75,12 @@ INTEGRATIONS: tuple[str, ...] = ("segment", "samples")
 
 @dataclasses.dataclass(frozen=True)
 class RenderConfig:
-    """Static settings of a render (hashable; presets :meth:`tiny`, :meth:`default`, :meth:`paper`)."""
+    """Static settings of a render (hashable). The buffer sizes of traversal and packing are not
+    settings: they are :class:`~ne_jax.geometry.capacity.Capacities`, carried by the
+    :class:`PointScene`."""
 
     tree: KDTreeConfig = KDTreeConfig()
-    """K-D tree, traversal capacities and KNN (``knn_k``, candidate-set size)."""
+    """K-D tree, traversal and KNN (``knn_k``, candidate-set size)."""
 
     quadrature: QuadratureConfig = QuadratureConfig()
     """Integration rule and samples per level (bottom rendering level first)."""
@@ -90,13 +93,6 @@ class RenderConfig:
 
     chunk: int = 4096
     """Rays per compiled call in :func:`render_image` (the memory knob; one compilation per value)."""
-
-    segments_per_ray: float | None = 4.0
-    """Segment budget: the valid segments of a ray batch are packed into ``ceil(R * segments_per_ray)``
-    slots before sampling, KNN and shading, so work follows the segments that exist, not the ``M``
-    slots per ray (most rays of an image hit nothing). Segments beyond the budget are dropped and
-    counted in ``RenderOut.overflow``; :func:`render_chunked` re-renders such a chunk with a doubled
-    budget. ``None``: shade every slot (no packing)."""
 
     integration: Literal["segment", "samples"] = "segment"
     """``"segment"`` (paper): integrate the interpolated features over each segment with the
@@ -122,14 +118,6 @@ class RenderConfig:
             )
         if self.chunk < 1:
             raise ValueError(f"RenderConfig.chunk: expected a positive integer, found {self.chunk}")
-        if self.segments_per_ray is not None and not self.segments_per_ray > 0:
-            raise ValueError(f"RenderConfig.segments_per_ray: expected None or > 0, found {self.segments_per_ray}")
-
-    def segment_budget(self, num_rays: int) -> int | None:
-        """Packed segment slots for a batch of ``num_rays`` rays (``None``: no packing)."""
-        if self.segments_per_ray is None:
-            return None
-        return max(1, int(np.ceil(num_rays * self.segments_per_ray)))
 
     def replace(self, **changes) -> RenderConfig:
         return dataclasses.replace(self, **changes)
@@ -142,60 +130,80 @@ class RenderConfig:
 
 @struct.dataclass
 class PointScene:
-    """What a model renders: the point state and the K-D tree over its alive points.
+    """What a model renders: the point state, the K-D tree over its alive points, and the buffer
+    sizes its renders use.
 
     The tree is built on the points (:meth:`build`), or carried through an edit (:meth:`edited`):
     then ``rest_xyz [C, 3]`` / ``rest_alive [C]`` are the positions and mask it was built on, from
-    which a later edit carries it again (nothing in a render reads them)."""
+    which a later edit carries it again (nothing in a render reads them). ``capacities`` (static:
+    a new value compiles anew) are grown by :func:`~ne_jax.geometry.capacity.grow` from what a
+    render lost (:meth:`grown`)."""
 
     points: PointState
     tree: KDTree
     rest_xyz: jax.Array | None = None
     rest_alive: jax.Array | None = None
+    capacities: Capacities = struct.field(pytree_node=False, default=Capacities())
 
     @classmethod
-    def build(cls, points: PointState, cfg: RenderConfig) -> PointScene:
+    def build(cls, points: PointState, cfg: RenderConfig, capacities: Capacities = Capacities()) -> PointScene:
         """Build the tree of ``points`` (host side) for rendering with ``cfg``."""
-        return cls(points=points, tree=build_tree(np.asarray(points.xyz), np.asarray(points.alive), cfg.tree))
+        return cls(points=points, tree=build_tree(np.asarray(points.xyz), np.asarray(points.alive), cfg.tree),
+                   capacities=capacities)
 
     @classmethod
-    def carried(cls, rest_xyz, rest_alive, points: PointState, cfg: RenderConfig, **carry) -> PointScene:
+    def carried(cls, rest_xyz, rest_alive, points: PointState, cfg: RenderConfig,
+                capacities: Capacities = Capacities(), **carry) -> PointScene:
         """The scene of ``points`` with the tree built on ``rest_xyz``/``rest_alive`` carried to them
         (:func:`~ne_jax.geometry.carry.carry_tree`; ``carry``: its keyword arguments)."""
         rest_xyz, rest_alive = np.asarray(rest_xyz), np.asarray(rest_alive)
         tree = carry_tree(build_tree(rest_xyz, rest_alive, cfg.tree), rest_xyz, np.asarray(points.xyz),
                           np.asarray(points.alive), cfg.tree, **carry)
-        return cls(points=points, tree=tree, rest_xyz=jnp.asarray(rest_xyz), rest_alive=jnp.asarray(rest_alive))
+        return cls(points=points, tree=tree, rest_xyz=jnp.asarray(rest_xyz), rest_alive=jnp.asarray(rest_alive),
+                   capacities=capacities)
+
+    def grown(self, lost: Lost | LostCounts, buffers: tuple[str, ...] = BUFFERS) -> PointScene | None:
+        """This scene with capacities grown by what a render of it lost, or ``None`` if nothing was
+        (:func:`~ne_jax.geometry.capacity.grow`; ``buffers``: the ones that may grow)."""
+        bigger = grow(self.capacities, lost, buffers)
+        return None if bigger is None else self.replace(capacities=bigger)
+
+    def fitted(self, cfg: RenderConfig, rays: Rays, headroom: float = 1.25) -> PointScene:
+        """This scene with a packing budget that holds ``headroom`` times the mean segments per ray of
+        ``rays`` (a probe batch; :func:`~ne_jax.geometry.capacity.fit_packing`), never lowered."""
+        if self.capacities.segments_per_ray is None:
+            return self
+        mean = float(jnp.mean(intersect(self.tree, rays, cfg.tree, self.capacities).num_segments))
+        return self.replace(capacities=fit_packing(self.capacities, mean, headroom))
 
     def edited(self, points: PointState, cfg: RenderConfig, carry: bool = True, **carry_kw) -> PointScene:
         """The scene of ``points``, an edit of this scene's points (same capacity and indices): the
         tree carried from where it was built (``carry``; see :mod:`ne_jax.geometry.carry`), or
         rebuilt on the edited cloud (the paper's behaviour)."""
         if not carry:
-            return PointScene.build(points, cfg)
+            return PointScene.build(points, cfg, self.capacities)
         if self.rest_xyz is None:  # a built tree: this scene's points are its rest
             tree = carry_tree(self.tree, np.asarray(self.points.xyz), np.asarray(points.xyz),
                               np.asarray(points.alive), cfg.tree, **carry_kw)
-            return PointScene(points=points, tree=tree, rest_xyz=self.points.xyz, rest_alive=self.points.alive)
-        return PointScene.carried(self.rest_xyz, self.rest_alive, points, cfg, **carry_kw)
+            return PointScene(points=points, tree=tree, rest_xyz=self.points.xyz, rest_alive=self.points.alive,
+                              capacities=self.capacities)
+        return PointScene.carried(self.rest_xyz, self.rest_alive, points, cfg, self.capacities, **carry_kw)
 
 
 @struct.dataclass
 class RenderOut:
     """Per-ray results. ``rgb`` ``[R, 3]``, ``opacity``/``depth`` ``[R]``, ``normal`` ``[R, 3]``
     (opacity-weighted shading normal; zeros when the scene shades without normals),
-    ``num_segments`` ``[R]`` segments rendered. What was lost is counted, never silent:
-    ``overflow`` ``[R]`` segments lost to the traversal's capacities (``KDTreeConfig.frontier_capacity``,
-    ``max_segments``), ``dropped`` ``[R]`` segments beyond the packing budget (``segments_per_ray``).
-    Both 0: the render is complete."""
+    ``num_segments`` ``[R]`` segments rendered. What was lost to the scene's capacities is counted,
+    never silent: ``lost`` (:class:`~ne_jax.geometry.capacity.Lost`, ``[R]`` per field);
+    ``lost.count`` 0 everywhere: the render is complete."""
 
     rgb: jax.Array
     opacity: jax.Array
     depth: jax.Array
     normal: jax.Array
     num_segments: jax.Array
-    overflow: jax.Array
-    dropped: jax.Array
+    lost: Lost
 
 
 def values_needed(points: PointState, effects: Effects) -> dict:
@@ -275,11 +283,11 @@ def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, back
             aux: bool) -> tuple[RenderOut, SegmentAux | None]:
     tcfg = cfg.tree
     tree = scene.tree
-    seg = intersect(tree, rays, tcfg)
+    seg = intersect(tree, rays, tcfg, scene.capacities)
     stage_check(cfg.checks, "traversal", origin=rays.origin, direction=rays.direction)
     stage_check(cfg.checks, "traversal", where=seg.valid, t_lo=seg.t_lo, t_hi=seg.t_hi)
     r, m = seg.valid.shape
-    budget = cfg.segment_budget(r)
+    budget = scene.capacities.segment_budget(r)
     flat = lambda a: a.reshape((r * m,) + a.shape[2:])  # noqa: E731
     if budget is None or budget >= r * m:
         keep = seg.valid
@@ -319,8 +327,8 @@ def _composite_out(cfg: RenderConfig, params, rays: Rays, background, seg, keep,
     stage_check(cfg.checks, "compositing", rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth)
     normal_map = comp.normal if comp.normal is not None else jnp.zeros_like(comp.rgb)
     out = RenderOut(rgb=comp.rgb, opacity=comp.opacity, depth=comp.depth, normal=normal_map,
-                    num_segments=jnp.sum(keep, axis=-1), overflow=seg.overflow,
-                    dropped=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32))
+                    num_segments=jnp.sum(keep, axis=-1),
+                    lost=seg.lost(packing=jnp.sum(seg.valid & ~keep, axis=-1).astype(jnp.int32)))
     if extra is None:
         return out, None
     seg_aux = SegmentAux(
@@ -422,21 +430,19 @@ def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, backgrou
     return out
 
 
-def grown_config(cfg: RenderConfig, out: RenderOut) -> RenderConfig | None:
-    """Host side: the config with larger capacities if ``out`` lost segments, else ``None``.
-    The packing budget grows on ``dropped`` to what the batch needed; the traversal capacities double
-    on ``overflow``, after a two-pass walk's retry share (:meth:`~ne_jax.geometry.kdtree.KDTreeConfig.widened`)."""
-    dropped, overflow = (int(v) for v in jax.device_get(jnp.stack([jnp.max(out.dropped), jnp.max(out.overflow)])))
-    if dropped == 0 and overflow == 0:
-        return None
-    if dropped > 0:  # enough for what this batch needed, in powers of two (few distinct compiles)
-        needed = float(jnp.sum(out.num_segments) + jnp.sum(out.dropped)) / out.dropped.shape[0]
-        grow = 2.0 ** max(1, int(np.ceil(np.log2(needed / cfg.segments_per_ray))))
-        cfg = cfg.replace(segments_per_ray=grow * cfg.segments_per_ray)
-    if overflow > 0:
-        t = cfg.tree
-        cfg = cfg.replace(tree=t.widened().replace(max_segments=2 * t.max_segments))
-    return cfg
+def until_complete(scene: PointScene, call, lost_of, max_grow: int = 4):
+    """``call(scene)``, and again with the scene's capacities grown (:meth:`PointScene.grown`) while
+    ``lost_of(output)`` (a :class:`~ne_jax.geometry.capacity.Lost` or ``LostCounts``) says it lost
+    something, at most ``max_grow`` times. Returns ``(output, scene)``: the last output and the scene
+    with the capacities it was made with (keep it: the next call compiles no more)."""
+    out = call(scene)
+    for _ in range(max_grow):
+        bigger = scene.grown(lost_of(out))
+        if bigger is None:
+            break
+        scene = bigger
+        out = call(scene)
+    return out, scene
 
 
 def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
@@ -446,9 +452,10 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
     chunk is rounded up to a multiple of the mesh's size).
 
-    A chunk that lost segments is rendered again with grown capacities (:func:`grown_config`, at
-    most ``max_grow`` times; later chunks keep the grown config, so it compiles once more, not per
-    chunk); what is still lost after that is reported in the output's ``overflow``/``dropped``.
+    A chunk that lost segments is rendered again with the scene's capacities grown
+    (:meth:`PointScene.grown`, at most ``max_grow`` times; later chunks keep the grown capacities,
+    so it compiles once more, not per chunk); what is still lost after that is reported in the
+    output's ``lost``.
     ``progress``: show a progress bar (default: when there are more than 8 chunks). Deterministic
     rules only (the stochastic rule is a training-time ablation: use :func:`render_rays`)."""
     if cfg.quadrature.rule == "stochastic":
@@ -470,13 +477,9 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
         sl = slice(s, s + chunk)
         part = jax.tree_util.tree_map(operator.itemgetter(sl), padded)
         bg = background[sl] if per_ray_bg else background
-        out = _render_chunk_maybe_checked(cfg, params, scene, part, bg, mesh)
-        for _ in range(max_grow):
-            bigger = grown_config(cfg, out)
-            if bigger is None:
-                break
-            cfg = bigger
-            out = _render_chunk_maybe_checked(cfg, params, scene, part, bg, mesh)
+        out, scene = until_complete(
+            scene, lambda s, part=part, bg=bg: _render_chunk_maybe_checked(cfg, params, s, part, bg, mesh),
+            lambda out: out.lost, max_grow)
         outs.append(out)
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *outs)
 

@@ -26,7 +26,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -34,7 +33,7 @@ from ne_jax.atomic import atomic_write_text
 from ne_jax.compiles import count_compiles
 from ne_jax.config_json import config_diff, config_to_json
 from ne_jax.data.nerf_synthetic import SceneSplit, load_split
-from ne_jax.geometry.intersect import intersect
+from ne_jax.geometry.capacity import LostCounts
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import (
     InitialCloud,
@@ -45,9 +44,17 @@ from ne_jax.pointcloud.init import (
 )
 from ne_jax.pointcloud.normals import estimate_normals
 from ne_jax.pointcloud.optimise import optimise_points
-from ne_jax.render.renderer import PointScene, RenderConfig
+from ne_jax.render.renderer import PointScene
 from ne_jax.train.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, save_checkpoint
-from ne_jax.train.model import CHECKPOINT_DIR, METRICS_FILE, TrainedModel, _json_safe, _scene_of, _write_rest
+from ne_jax.train.model import (
+    CHECKPOINT_DIR,
+    METRICS_FILE,
+    TrainedModel,
+    _json_safe,
+    _scene_of,
+    _write_rest,
+    saved_capacities,
+)
 from ne_jax.train.run import CONFIG_FILE, InitConfig, RunConfig
 from ne_jax.train.sampler import build_pool, sample_batch
 from ne_jax.train.state import init_train_state
@@ -119,12 +126,30 @@ def _epoch_summary(metrics: list[dict]) -> dict:
             vals = np.array([float(m[k]) for m, good in zip(host, ok) if good])
             out[k] = float(vals.mean()) if vals.size else float("nan")
     out["lr_last"] = float(host[-1]["lr"])
-    out["overflow"] = int(sum(int(m["overflow"]) for m in host))
-    out["dropped"] = int(sum(int(m["dropped"]) for m in host))
+    out["lost"] = lost_counts(host).as_dict()
     bad = sorted({k.split("/", 1)[1] for m in host for k, v in m.items() if k.startswith("finite/") and not bool(v)})
     if bad:
         out["non_finite"] = bad
     return out
+
+
+TRAINING_GROWS = ("packing",)
+"""The buffers a training run grows after an epoch that lost into them. The traversal's frontier and
+slots are a training step's speed settings (a preset is chosen with them, docs/studies/
+accuracy_vs_time.md): what a batch loses there (about one frontier node or segment per 1,000 rays
+at ``tiny`` and ``default``, docs/geometry.md) is counted in each epoch's record, not grown, while a
+render grows every buffer."""
+
+
+def lost_counts(metrics: list[dict]) -> LostCounts:
+    """What the training steps of ``metrics`` (host values, :func:`~ne_jax.train.step.make_train_step`'s
+    ``lost/*``) lost to the scene's capacities, over their batches."""
+    total = LostCounts()
+    for m in metrics:
+        total += LostCounts(frontier=int(m["lost/frontier"]), slots=int(m["lost/slots"]),
+                            packing=int(m["lost/packing"]), max_emitted=int(m["lost/max_emitted"]),
+                            emitted=int(m["lost/emitted"]), rays=int(m["lost/rays"]))
+    return total
 
 
 def _write_metrics(run_dir: Path, scene_dir: Path, initial: dict, history: list, notes: dict) -> None:
@@ -214,19 +239,19 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         state = init_train_state(run.train, run.render, points, k_model)
     if latest is None:
         carried = start is not None and start.scene is not None
-        scene = start.scene.replace(points=points) if carried else PointScene.build(points, run.render)
+        scene = (start.scene.replace(points=points) if carried
+                 else PointScene.build(points, run.render, run.capacities))
         _write_rest(run_dir, scene)
     else:
-        scene = _scene_of(points, run.render, run_dir)
-    budget = extra.get("segments_per_ray") if latest is not None else None
-    render = run.render if budget is None else run.render.replace(segments_per_ray=budget)
-    step_fns: dict = {}  # one compiled step per packing budget
+        scene = _scene_of(points, run.render, run_dir, saved_capacities(meta, run.capacities))
+    render = run.render
+    step_fn = _train_step(run.train, render)  # compiles once per capacities the scene carries
 
-    def fit(render, scene, epoch):  # the budget for the next epoch's scene, probed on its rays
+    def fit(scene, epoch):  # the packing budget for the next epoch's scene, probed on its rays
         probe = sample_batch(sampler, pool, jax.random.fold_in(k_rounds, 10_000 + epoch)).rays
-        return fit_segment_budget(render, scene, probe)
+        return scene.fitted(render, probe)
 
-    render = fit(render, scene, len(history))
+    scene = fit(scene, len(history))
 
     total = run.total_steps
     first_epoch = len(history) + 1
@@ -235,9 +260,6 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
     try:
         for epoch in range(first_epoch, run.epochs + 1):
             t0 = time.perf_counter()
-            if render not in step_fns:
-                step_fns[render] = _train_step(run.train, render)
-            step_fn = step_fns[render]
             metrics = []
             step0 = (epoch - 1) * run.steps_per_epoch
             with count_compiles() as compiles:  # the step's (its batches' sampler compiled in fit())
@@ -257,9 +279,9 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                     f"epoch {epoch}: all {record['steps']} steps were refused because of non-finite values "
                     f"(terms: {', '.join(record.get('non_finite', ['?']))}); parameters were left unchanged")
             record["train_seconds"] = round(time.perf_counter() - t0, 2)
-            record["segments_per_ray"] = render.segments_per_ray
-            if record["dropped"] > 0:  # the budget was too small for some batches: double it
-                render = render.replace(segments_per_ray=2.0 * render.segments_per_ray)
+            record["capacities"] = dataclasses.asdict(scene.capacities)
+            # a batch lost segments to the packing budget: grow it (the traversal's losses are counted)
+            scene = scene.grown(LostCounts(**record["lost"]), TRAINING_GROWS) or scene
             if run.optimises_points_after(epoch):
                 t1 = time.perf_counter()
                 trained = state.scene(scene)
@@ -269,16 +291,16 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                                                      pool.background, views, run.normals)
                 reset = _changed_slots(trained.points, new_points)
                 state = state.with_points(new_points, reset)
-                scene = PointScene.build(new_points, run.render)
+                scene = PointScene.build(new_points, run.render, scene.capacities)
                 _write_rest(run_dir, scene)  # before the checkpoint: a resume never carries a rebuilt cloud
                 report["seconds"] = round(time.perf_counter() - t1, 2)
                 record["points"] = report
-            render = fit(render, scene, epoch)
+            scene = fit(scene, epoch)
             record["alive"] = int(np.asarray(scene.points.alive).sum())
             history.append(record)
             save_checkpoint(ckpt_dir, state, state.point_state(scene.points), run.train, run.render,
                             extra=_json_safe({"history": history, "initial_cloud": initial, "notes": notes or {},
-                                              "segments_per_ray": render.segments_per_ray}),
+                                              "capacities": dataclasses.asdict(scene.capacities)}),
                             keep=run.checkpoint_keep)
             _write_metrics(run_dir, scene_dir, initial, history, notes or {})
             log(_epoch_line(record))
@@ -288,20 +310,6 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         bar.close()
     return TrainedModel(run=run, state=state, scene=state.scene(scene), scene_dir=scene_dir, run_dir=run_dir,
                         history=history, initial=initial)
-
-
-def fit_segment_budget(render: RenderConfig, scene: PointScene, rays, headroom: float = 1.25) -> RenderConfig:
-    """``render`` with a packing budget (``segments_per_ray``) that holds ``headroom`` times the mean
-    segments per ray of ``rays`` in ``scene``: the preset's budget doubled as often as needed, never
-    lowered. Segments beyond the budget would be dropped from the end of the batch, and the rays
-    that lose them would train on the background colour."""
-    if render.segments_per_ray is None:
-        return render
-    need = headroom * float(jnp.mean(intersect(scene.tree, rays, render.tree).num_segments))
-    budget = render.segments_per_ray
-    while budget < need:
-        budget *= 2.0
-    return render.replace(segments_per_ray=budget)
 
 
 def _changed_slots(old: PointState, new: PointState) -> np.ndarray:
@@ -316,8 +324,10 @@ def _epoch_line(r: dict) -> str:
             f"train PSNR {r.get('psnr', float('nan')):.2f} dB, {r['train_seconds']:.1f} s")
     if r["skipped"]:
         line += f", {r['skipped']} step(s) refused (non-finite: {', '.join(r.get('non_finite', []))})"
-    if r["overflow"] or r["dropped"]:
-        line += f", segments lost: {r['overflow']} overflow + {r['dropped']} dropped"
+    lost = r["lost"]
+    if lost["frontier"] or lost["slots"] or lost["packing"]:
+        line += (f", lost (capacities grown): {lost['frontier']} frontier nodes, {lost['slots']} segments beyond "
+                 f"the slots, {lost['packing']} beyond the packing budget")
     if "points" in r:
         p = r["points"]
         g = p.get("grown", {})
@@ -327,4 +337,4 @@ def _epoch_line(r: dict) -> str:
     return line
 
 
-__all__ = ["StartFrom", "TrainingDiverged", "fit_segment_budget", "initial_cloud", "initial_points", "train"]
+__all__ = ["StartFrom", "TrainingDiverged", "initial_cloud", "initial_points", "lost_counts", "train"]

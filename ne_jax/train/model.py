@@ -21,7 +21,9 @@ import numpy as np
 
 from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ne_jax.config_json import config_to_json
+from ne_jax.data.nerf_synthetic import parse_background
 from ne_jax.data.rays import Camera
+from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig, RenderOut, render_image
 from ne_jax.train.checkpoint import load_checkpoint, save_checkpoint
@@ -46,14 +48,25 @@ def _write_rest(run_dir: Path, scene: PointScene) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _scene_of(points: PointState, render: RenderConfig, run_dir: Path) -> PointScene:
+def _scene_of(points: PointState, render: RenderConfig, run_dir: Path, capacities: Capacities) -> PointScene:
     """The scene of ``points``: the tree carried from the run directory's rest record when it has one
     (an edited model), else built."""
     path = Path(run_dir) / REST_FILE
     if not path.is_file():
-        return PointScene.build(points, render)
+        return PointScene.build(points, render, capacities)
     with np.load(path) as rest:
-        return PointScene.carried(rest["xyz"], rest["alive"], points, render)
+        return PointScene.carried(rest["xyz"], rest["alive"], points, render, capacities)
+
+
+def saved_capacities(meta: dict, start: Capacities) -> Capacities:
+    """The capacities a checkpoint was saved with (its ``extra``), else ``start``; a checkpoint that
+    recorded only its packing budget gets ``start`` with that budget."""
+    extra = meta.get("extra", {})
+    if "capacities" in extra:
+        return Capacities(**extra["capacities"])
+    if extra.get("segments_per_ray") is not None:
+        return start.replace(segments_per_ray=extra["segments_per_ray"])
+    return start
 
 
 def _json_safe(x):
@@ -115,8 +128,8 @@ class TrainedModel:
 
     def render_image(self, camera: Camera, *, progress: bool = False) -> RenderOut:
         """Render one camera's image (see :func:`~ne_jax.render.renderer.render_image`)."""
-        return render_image(self.run.render, self.params, self.scene, camera, self.background, self.near, self.far,
-                            progress=progress)
+        return render_image(self.run.render, self.params, self.scene, camera, parse_background(self.background),
+                            self.near, self.far, progress=progress)
 
     def replace(self, **changes) -> TrainedModel:
         return dataclasses.replace(self, **changes)
@@ -135,7 +148,8 @@ def load_trained(run_dir: str | Path) -> TrainedModel:
     file = run_dir / METRICS_FILE
     metrics = json.loads(file.read_text(encoding="utf-8")) if file.is_file() else {}
     scene_dir = Path(metrics["scene_dir"]) if metrics.get("scene_dir") else None
-    return TrainedModel(run=run, state=state, scene=_scene_of(points, run.render, run_dir), scene_dir=scene_dir,
+    scene = _scene_of(points, run.render, run_dir, saved_capacities(meta, run.capacities))
+    return TrainedModel(run=run, state=state, scene=scene, scene_dir=scene_dir,
                         run_dir=run_dir, history=list(metrics.get("epochs", [])),
                         initial=dict(metrics.get("initial_cloud", {})), meta=meta)
 
@@ -151,6 +165,7 @@ def save_trained(model: TrainedModel, run_dir: str | Path, metrics: dict | None 
     with atomic_directory(run_dir) as tmp:
         atomic_write_text(tmp / CONFIG_FILE, json.dumps(config_to_json(model.run), indent=2) + "\n")
         atomic_write_text(tmp / METRICS_FILE, json.dumps(_json_safe(metrics), indent=2, allow_nan=False) + "\n")
+        extra = {"capacities": dataclasses.asdict(model.scene.capacities), **(extra or {})}
         save_checkpoint(tmp / CHECKPOINT_DIR, model.state, points, model.run.train, model.run.render,
                         extra=extra, keep=1)
         _write_rest(tmp, model.scene)

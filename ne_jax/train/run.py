@@ -7,7 +7,8 @@ import dataclasses
 import json
 from pathlib import Path
 
-from ne_jax.config_json import ConfigError, config_from_json
+from ne_jax.config_json import BUFFER_SIZES, ConfigError, config_from_json
+from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.pointcloud.init import (
     CarveConfig,
@@ -75,6 +76,10 @@ class RunConfig:
     checkpoint_keep: int = 3
     log_every: int = 25
     """Steps between progress-bar updates (each reads the metrics back from the device)."""
+    capacities: Capacities = dataclasses.field(default=Capacities(), metadata={BUFFER_SIZES: True})
+    """The buffer sizes the run starts with (traversal frontier and slots, packing budget): not a
+    setting, so not in the run's key; grown when a batch loses segments, and the sizes in use are
+    saved with each checkpoint (``metrics.json``: ``capacities`` per epoch)."""
 
     def __post_init__(self):
         if int(self.epochs) < 1 or int(self.steps_per_epoch) < 1:
@@ -123,10 +128,10 @@ class RunConfig:
         """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
         of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
         over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3)."""
-        render = RenderConfig(tree=KDTreeConfig(candidate_min=16, knn_k=16, num_render_levels=2, frontier_capacity=32,
-                                                max_segments=32),
+        render = RenderConfig(tree=KDTreeConfig(candidate_min=16, knn_k=16, num_render_levels=2),
                               quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)), chunk=1024)
-        base = cls(name="tiny", render=render, sampler=SamplerConfig(batch_size=1024),
+        base = cls(name="tiny", render=render, capacities=Capacities(frontier=32, max_segments=32),
+                   sampler=SamplerConfig(batch_size=1024),
                    train=TrainConfig(lr=5e-3), points=PointOptConfig(grow_rays=4096),
                    epochs=6, steps_per_epoch=125, point_rounds=(2, 4))
         return base.with_schedule().replace(**changes)
@@ -139,10 +144,9 @@ class RunConfig:
         docs/studies/accuracy_vs_time.md). The tree is walked in two passes, 16 nodes wide and then
         64 for at most a quarter of the rays: on the benchmark's glossy scene this trains the same model bit for
         bit as one 64-wide pass, in 0.885x the time."""
-        render = RenderConfig(tree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2,
-                                                first_pass_frontier=16, retry_share=0.25),
+        render = RenderConfig(tree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2),
                               quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)))
-        base = cls(name="default", render=render,
+        base = cls(name="default", render=render, capacities=Capacities(first_pass_frontier=16, retry_share=0.25),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
                    sampler=SamplerConfig(batch_size=2048), train=TrainConfig(lr=5e-3),
                    epochs=12, steps_per_epoch=500, point_rounds=(3, 9))
@@ -154,7 +158,8 @@ class RunConfig:
         epochs 4-12 (a GPU-sized run). 64 segment slots a ray: at 21 levels a ray finds more, smaller
         voxels (with 32, 1.9% of a training batch's rays on the benchmark's glossy cloud filled every
         slot)."""
-        base = cls(name="paper", render=RenderConfig(tree=KDTreeConfig(depth=21, max_segments=64)),
+        base = cls(name="paper", render=RenderConfig(tree=KDTreeConfig(depth=21)),
+                   capacities=Capacities(max_segments=64),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
                    sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),
                    epochs=16, steps_per_epoch=5000, point_rounds=(4, 12))

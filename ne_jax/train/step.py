@@ -65,8 +65,9 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | Non
 
     Metrics (scalars): ``loss/<term>`` (unweighted), ``loss/total`` (weighted), ``finite/<term>``,
     ``finite/grad``, ``finite/update``, ``ok`` (the step was applied), ``psnr`` (of the batch MSE), ``lr`` (the rate
-    used), ``grad_norm``, ``opacity`` (mean over the batch), ``overflow``/``dropped`` (segments
-    lost to traversal capacities / the packing budget, summed over the batch; should be 0).
+    used), ``grad_norm``, ``opacity`` (mean over the batch), ``lost/frontier``, ``lost/slots``,
+    ``lost/packing``, ``lost/emitted`` (the batch's :class:`~ne_jax.geometry.capacity.Lost`, summed;
+    the first three should be 0), ``lost/max_emitted`` and ``lost/rays``.
     """
     mesh = default_mesh() if mesh is None else mesh
     if mesh.devices.size == 1 or render_cfg.checks:
@@ -126,12 +127,15 @@ def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
         out = fixed[0]
         mse = terms["photometric"] if "photometric" in terms else jnp.mean(jnp.square(out.rgb - target))
         stats = {"mse": mse, "opacity": jnp.mean(out.opacity)}
-        counts = {"overflow": jnp.sum(out.overflow), "dropped": jnp.sum(out.dropped)}
+        lost = out.lost
+        counts = {f"lost/{k}": jnp.sum(getattr(lost, k)) for k in ("frontier", "slots", "packing", "emitted")}
+        counts["lost/rays"] = jnp.asarray(lost.emitted.shape[0], jnp.int32)
+        most = {"lost/max_emitted": jnp.max(lost.emitted)}
         if reduce:  # every term is a mean over rays (or over points: equal on every device)
             terms, grads, stats = jax.lax.pmean((terms, grads, stats), RAYS)
             term_ok = jax.tree_util.tree_map(lambda ok: jax.lax.pmin(ok.astype(jnp.int32), RAYS) > 0, term_ok)
-            counts = jax.lax.psum(counts, RAYS)
-        return terms, term_ok, grads, {**stats, **counts}
+            counts, most = jax.lax.psum(counts, RAYS), jax.lax.pmax(most, RAYS)
+        return terms, term_ok, grads, {**stats, **counts, **most}
 
     def step_fn(state: TrainState, scene: PointScene, batch: Batch):
         key, k_render = jax.random.split(state.key)
@@ -168,8 +172,7 @@ def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
         metrics["lr"] = jnp.asarray(schedule(state.step), jnp.float32)
         metrics["grad_norm"] = optax.tree.norm(grads)
         metrics["opacity"] = stats["opacity"]
-        metrics["overflow"] = stats["overflow"]
-        metrics["dropped"] = stats["dropped"]
+        metrics.update({k: v for k, v in stats.items() if k.startswith("lost/")})
         return new_state, metrics
 
     step = checked(step_fn) if render_cfg.checks else jax.jit(step_fn)

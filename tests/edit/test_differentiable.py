@@ -22,10 +22,10 @@ from ne_jax.edit.ist import ISTConfig
 from ne_jax.geometry import PointState
 from ne_jax.render.shading import init_color_model
 
-from tests.mini_presets import tiny_render, tiny_tree
+from tests.mini_presets import tiny_caps, tiny_render
 
-CFG = tiny_render(tree=tiny_tree(frontier_capacity=32, max_segments=32),
-                        segments_per_ray=None).with_effects(ist=True)
+CFG = tiny_render().with_effects(ist=True)
+CAPS = tiny_caps(frontier=32, max_segments=32, segments_per_ray=None)
 N, CAP, R = 700, 768, 256
 TRUE = 0.6  # radians
 DEFORM = bend_deformation((0, 0, -0.8), (0, 0, 1), (1, 0, 0), 1.6)
@@ -51,16 +51,16 @@ def world():
                 near=jnp.full((R,), 1.0), far=jnp.full((R,), 5.0))
     bg = jnp.ones(3)
     problem = make_edit_loss(CFG, DEFORM, EDIT)
-    topo = problem.topology(pts, TRUE)
+    topo = problem.topology(pts, TRUE, capacities=CAPS)
     (_, out), _ = problem.value_and_grad(jnp.float32(TRUE), params, pts, topo, rays, jnp.zeros((R, 3)), bg)
-    assert float(jnp.mean(out.opacity)) > 0.3 and int(jnp.sum(out.overflow)) == 0
+    assert float(jnp.mean(out.opacity)) > 0.3 and int(jnp.sum(out.lost.count)) == 0
     return {"points": pts, "params": params, "rays": rays, "bg": bg, "problem": problem, "targets": out.rgb,
             "reverse": make_edit_loss(CFG, DEFORM, EDIT, mode="reverse")}
 
 
 def _value_and_grad(w, theta, deleted=None, topo_at=None):
     p = w["problem"]
-    topo = p.topology(w["points"], theta if topo_at is None else topo_at, deleted)
+    topo = p.topology(w["points"], theta if topo_at is None else topo_at, deleted, capacities=CAPS)
     (value, out), grad = p.value_and_grad(jnp.float32(theta), w["params"], w["points"], topo, w["rays"],
                                           w["targets"], w["bg"])
     return float(value), float(grad), out, topo
@@ -97,7 +97,7 @@ def test_gradient_matches_central_difference(world):
     loss = jax.jit(p.loss)
     checked = 0
     for theta in (0.2, 0.35, 0.45, 0.55, 0.7):
-        topo = p.topology(w["points"], theta)
+        topo = p.topology(w["points"], theta, capacities=CAPS)
         (value, _), grad = p.value_and_grad(jnp.float32(theta), w["params"], w["points"], topo, rays, targets, w["bg"])
 
         def f(t, topo=topo):
@@ -115,7 +115,8 @@ def test_gradient_matches_central_difference(world):
 def test_descent_recovers_the_angle_from_a_nearby_start(world):
     start = TRUE - 0.2
     theta, traj = recover_parameter(world["problem"], world["params"], world["points"], start, world["rays"],
-                                    world["targets"], world["bg"], steps=12, learning_rate=0.03, rebuild_every=3)
+                                    world["targets"], world["bg"], steps=12, learning_rate=0.03, rebuild_every=3,
+                                    capacities=CAPS)
     assert abs(float(theta) - TRUE) < 0.5 * abs(start - TRUE)
     assert traj.loss[-1] < 0.5 * traj.loss[0]
     assert len(traj.theta) == 13 and traj.rebuilt[::3] == [True] * 5
@@ -129,18 +130,18 @@ def test_no_recompilation_across_steps(world):
     problem = world["problem"]
     fn = problem.value_and_grad
     before = fn._cache_size()
-    topo = problem.topology(world["points"], 0.3)
+    topo = problem.topology(world["points"], 0.3, capacities=CAPS)
     args = (world["params"], world["points"], topo, world["rays"], world["targets"], world["bg"])
     for theta in (0.3, 0.31, 0.35):  # fixed tree
         fn(jnp.float32(theta), *args)
     assert before >= 1 and fn._cache_size() == before
     _, traj = recover_parameter(problem, world["params"], world["points"], 0.3, world["rays"], world["targets"],
-                                world["bg"], steps=3, learning_rate=0.03, rebuild_every=2)
+                                world["bg"], steps=3, learning_rate=0.03, rebuild_every=2, capacities=CAPS)
     assert fn._cache_size() == before and traj.compiles == 0 and traj.rebuilt == [True, False, True, False]
 
 
 def test_boxes_follow_points_exactly_at_the_reference(world):
-    topo = world["problem"].topology(world["points"], 0.3)
+    topo = world["problem"].topology(world["points"], 0.3, capacities=CAPS)
     same = follow_boxes(topo.tree, topo.xyz, topo.xyz)
     np.testing.assert_array_equal(np.asarray(same.lo), np.asarray(topo.tree.lo))
     shifted = follow_boxes(topo.tree, topo.xyz + jnp.array([0.1, 0.0, 0.0]), topo.xyz)
@@ -160,7 +161,7 @@ def test_reverse_mode_matches_forward_mode(world, deleted):
     w = world
     dead = np.asarray(w["points"].xyz)[:, 2] > 0.5 if deleted else None
     reverse = w["reverse"]
-    topo = reverse.topology(w["points"], 0.3, dead)
+    topo = reverse.topology(w["points"], 0.3, dead, capacities=CAPS)
     args = (w["params"], w["points"], topo, w["rays"], w["targets"], w["bg"])
     (value_r, _), grad_r = reverse.value_and_grad(jnp.float32(0.3), *args)
     (value_f, _), grad_f = w["problem"].value_and_grad(jnp.float32(0.3), *args)

@@ -20,10 +20,9 @@ from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import PointScene
 from ne_jax.render.shading import init_color_model
 
-from tests.mini_presets import tiny_render, tiny_tree
+from tests.mini_presets import tiny_render
 
-CFG = tiny_render(tree=tiny_tree(frontier_capacity=64, max_segments=32),
-                        quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=512)
+CFG = tiny_render(quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=512)
 NEAR, FAR = 0.5, 6.0
 
 

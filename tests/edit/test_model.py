@@ -24,7 +24,7 @@ from ne_jax.train.loop import train
 from ne_jax.train.model import load_trained
 from ne_jax.train.run import InitConfig, RunConfig
 
-from tests.mini_presets import tiny_render, tiny_tree
+from tests.mini_presets import MINI_CAPS, tiny_render
 
 MINI = BenchmarkPreset("mini", resolution=24, train_views=4, val_views=1, test_views=1, supersample=1,
                        detail=0.4, surface_samples=2000)
@@ -39,10 +39,10 @@ def scene_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def trained(scene_dir, tmp_path_factory):
-    render = tiny_render(tree=tiny_tree(max_segments=24),
-                               quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
+    render = tiny_render(quadrature=QuadratureConfig(samples_per_level=(3, 4, 5)))
     init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
-    run = RunConfig(name="test", render=render, sampler=SamplerConfig(batch_size=128), train=TrainConfig(lr=5e-3),
+    run = RunConfig(name="test", render=render, capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
+                    train=TrainConfig(lr=5e-3),
                     init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
                     epochs=1, steps_per_epoch=4, point_rounds=(1, 0), log_every=2).with_schedule()
     out = tmp_path_factory.mktemp("run") / "trained"

@@ -34,6 +34,7 @@ from ne_jax.eval import (
     write_video,
 )
 from ne_jax.eval import views as views_module
+from ne_jax.geometry.capacity import Lost
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene
 from ne_jax.render.shading import init_color_model
@@ -112,7 +113,7 @@ def _flat_image_fn(colour):
     """An ``image_fn`` that "renders" every camera as one flat colour (no renderer, no compilation)."""
     def image_fn(cfg, params, scene, camera, background, near, far):
         rgb = jnp.broadcast_to(jnp.asarray(colour, jnp.float32), (camera.height, camera.width, 3))
-        return types.SimpleNamespace(rgb=rgb, overflow=jnp.zeros(1, jnp.int32), dropped=jnp.zeros(1, jnp.int32))
+        return types.SimpleNamespace(rgb=rgb, lost=Lost.none((camera.height, camera.width)))
     return image_fn
 
 

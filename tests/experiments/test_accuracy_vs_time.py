@@ -214,14 +214,21 @@ def test_evenly_spaced_views():
 
 def test_image_frontier_settings_change_only_the_frontier():
     image = _load("accuracy_vs_time_image")
-    from tests.mini_presets import tiny_render
+    from tests.mini_presets import tiny_caps, tiny_render
 
-    own = tiny_render()
-    rows = [s for s in image.settings_for(own, image.ImageSizes.full()) if s.knob == "frontier"]
-    assert [s.value for s in rows] == [4, 8]  # a quarter and a half of the tiny tree's 16
+    own, caps = tiny_render(), tiny_caps()
+    settings = image.settings_for(own, image.ImageSizes.full(), caps)
+    rows = [s for s in settings if s.knob == "frontier"]
+    assert [s.value for s in rows] == [4, 8]  # a quarter and a half of the tiny capacities' 16
     for s in rows:
-        assert s.cfg.tree == own.tree.replace(frontier_capacity=s.value)
-        assert s.cfg.replace(tree=own.tree) == own
+        assert s.capacities == caps.replace(frontier=s.value)
+        assert s.cfg == own
+    # only the frontier and the presets change the capacities
+    assert {s.knob for s in settings if s.capacities is not None} <= {"frontier", "preset"}
+    # a two-pass own walk keeps its first pass where it is narrower than the scaled frontier
+    two = caps.replace(frontier=64, first_pass_frontier=16)
+    rows = [s for s in image.settings_for(own, image.ImageSizes.full(), two) if s.knob == "frontier"]
+    assert [(s.capacities.frontier, s.capacities.first_pass_frontier) for s in rows] == [(16, None), (32, 16)]
 
 
 def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_path):
@@ -331,8 +338,8 @@ def test_training_candidates_change_one_knob():
     own = RunConfig.tiny()
     cands = tr.candidates_for(own)
     assert cands[0].label == "own" and cands[0].run == own
-    keys = [tr.config_key(c.run) for c in cands]
-    assert len(set(keys)) == len(keys)  # every candidate trains its own model
+    keys = [tr.run_key(c.run) for c in cands]
+    assert len(set(keys)) == len(keys)  # every candidate trains its own model, in its own run directory
     by = {c.label: c.run for c in cands}
     k_half = by[f"K={own.render.tree.knn_k // 2}"]
     assert k_half.replace(render=own.render) == own
@@ -349,14 +356,18 @@ def test_training_candidates_change_one_knob():
     half = by["steps x0.5"]
     assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.train.total_steps == half.total_steps
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
-    narrow = own.render.tree.frontier_capacity // 4  # appended last, so earlier indices keep their runs
-    assert cands[-2].label == f"frontier={narrow}" and cands[-2].run.replace(render=own.render) == own
-    assert cands[-2].run.render.tree == own.render.tree.replace(frontier_capacity=narrow)
-    assert cands[-1].knob == "two-pass" and cands[-1].run.replace(render=own.render) == own
-    assert cands[-1].run.render.tree.first_pass_frontier == narrow
+    narrow = own.capacities.frontier // 4  # appended last, so earlier indices keep their runs
+    assert cands[-2].label == f"frontier={narrow}" and cands[-2].run.replace(capacities=own.capacities) == own
+    assert cands[-2].run.capacities == own.capacities.replace(frontier=narrow)
+    assert cands[-1].knob == "two-pass" and cands[-1].run.replace(capacities=own.capacities) == own
+    assert cands[-1].run.capacities.first_pass_frontier == narrow
+    # they differ from the preset only in the buffer sizes: the same config key, another run directory
+    for c in cands[-2:]:
+        assert tr.config_key(c.run) == tr.config_key(own) and tr.run_key(c.run) != tr.run_key(own)
 
 
 def test_short_candidates_for_hour_long_presets():
+    from ne_jax.geometry.capacity import Capacities
     from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.render.quadrature import QuadratureConfig
     from ne_jax.train.run import RunConfig
@@ -366,22 +377,24 @@ def test_short_candidates_for_hour_long_presets():
     cands = tr.candidates_for(own, candidate_set="short")
     # the preset walks in two passes already (16 then 64): no two-pass candidate, and the narrow frontier
     # is walked in one pass
-    assert own.render.tree.first_pass_frontier == 16 and own.render.tree.retry_share == tr.TWO_PASS_SHARE
+    assert own.capacities.first_pass_frontier == 16 and own.capacities.retry_share == tr.TWO_PASS_SHARE
     assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates", "frontier"]
     paper, paper_short = cands[5].run, cands[6].run
     half = cands[7].run.render.tree
     assert (half.num_candidates, half.knn_k) == (16, 16) and cands[7].label == "16 candidates (K=16)"
     assert cands[7].run.replace(render=own.render) == own  # only the candidate set changes
-    one_pass = own.render.tree.replace(first_pass_frontier=None)
-    assert cands[8].label == "frontier=16" and cands[8].run.render.tree == one_pass.replace(frontier_capacity=16)
-    assert cands[8].run.replace(render=own.render) == own
+    one_pass = own.capacities.replace(first_pass_frontier=None)
+    assert cands[8].label == "frontier=16" and cands[8].run.capacities == one_pass.replace(frontier=16)
+    assert cands[8].run.replace(capacities=own.capacities) == own
     # a preset that walks in one pass gets the two-pass walk of its full width as its last candidate
-    single = own.replace(render=own.render.replace(tree=one_pass))
+    single = own.replace(capacities=one_pass)
     again = tr.candidates_for(single, candidate_set="short")
     assert [c.knob for c in again][-2:] == ["frontier", "two-pass"]
-    assert again[-1].run.render.tree == own.render.tree and again[-1].run.replace(render=single.render) == single
+    assert again[-1].run.capacities == own.capacities and again[-1].run.replace(capacities=one_pass) == single
     assert paper.render.tree == KDTreeConfig() and paper.render.quadrature == QuadratureConfig()
-    assert paper.replace(render=own.render) == own  # only the per-sample settings change
+    # only the per-sample settings change; the walk is the one the paper's tree config had (one pass)
+    assert paper.replace(render=own.render, capacities=own.capacities) == own
+    assert paper.capacities == Capacities(segments_per_ray=own.capacities.segments_per_ray)
     assert paper_short.total_steps == own.total_steps // 4
     # a preset already at the paper's settings has no paper candidates
     at_paper = own.replace(render=paper.render)

@@ -17,7 +17,7 @@ from tests.mini_presets import tiny_tree
 
 from .clouds import hard_rays, make_rays, sphere
 
-CFG = tiny_tree(frontier_capacity=64, max_segments=32)
+CFG = tiny_tree()
 
 
 @pytest.fixture(scope="module")

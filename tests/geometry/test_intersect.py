@@ -7,15 +7,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.geometry import KDTreeConfig, build_tree, intersect, intersect_checked, slab_intersect
+from ne_jax.geometry import Capacities, KDTreeConfig, build_tree, grow, intersect, intersect_checked, slab_intersect
 from ne_jax.numerics import safe_reciprocal, tiny
 
-from tests.mini_presets import tiny_tree
+from tests.mini_presets import tiny_caps, tiny_tree
 
 from .clouds import CLOUDS, hard_rays, make_rays, padded, sphere
 from .reference import minimal_voxels, slab64
 
 CFG = tiny_tree()
+CAPS = tiny_caps()
+WIDE = Capacities(frontier=64, max_segments=32)
 
 
 def compare(tree, rays, seg, cfg, include_grow=False, max_ambiguous=0.05):
@@ -52,10 +54,10 @@ def compare(tree, rays, seg, cfg, include_grow=False, max_ambiguous=0.05):
 
 
 def hard_case(name):
-    """``(tree, rays, cfg)``: the padded cloud ``name``'s tree and its hard rays, at one capacity and
-    depth for every cloud (one compilation serves them all)."""
+    """``(tree, rays, cfg)``: the padded cloud ``name``'s tree and its hard rays, at one depth for
+    every cloud (with :data:`WIDE` capacities one compilation serves them all)."""
     xyz, alive = padded(name)
-    cfg = CFG.replace(depth=10, frontier_capacity=64, max_segments=32)
+    cfg = CFG.replace(depth=10)
     tree = build_tree(xyz, alive, cfg)
     o, d = hard_rays(tree, xyz, alive, n_boxes=4)
     return tree, make_rays(o, d), cfg
@@ -63,12 +65,12 @@ def hard_case(name):
 
 @pytest.mark.parametrize("name", sorted(CLOUDS))
 def test_matches_reference_on_hard_rays(name):
-    tree, rays, cfg0 = hard_case(name)
-    seg, cfg = intersect_checked(tree, rays, cfg0)
+    tree, rays, cfg = hard_case(name)
+    seg, cap = intersect_checked(tree, rays, cfg, WIDE)
     compare(tree, rays, seg, cfg)
     assert int(jnp.sum(seg.num_segments)) > 0
-    seg_g, cfg_g = intersect_checked(tree, rays, cfg, include_grow_level=True)
-    compare(tree, rays, seg_g, cfg_g, include_grow=True)
+    seg_g, _ = intersect_checked(tree, rays, cfg, cap, include_grow_level=True)
+    compare(tree, rays, seg_g, cfg, include_grow=True)
 
 
 def test_axis_parallel_zero_signs_agree():
@@ -80,7 +82,7 @@ def test_axis_parallel_zero_signs_agree():
     o = np.stack([np.array([c[0], lo[1], c[2]], np.float32) - np.array([5, 0, 0], np.float32)] * 4)
     d = np.array([[1, 0.0, 0.0], [1, -0.0, 0.0], [1, 0.0, -0.0], [1, -0.0, -0.0]], np.float32)
     assert np.signbit(d[1, 1]) and np.signbit(d[3, 2])
-    seg = intersect(tree, make_rays(o, d), CFG)
+    seg = intersect(tree, make_rays(o, d), CFG, CAPS)
     for f in ("node", "t_lo", "t_hi", "valid"):
         a = np.asarray(getattr(seg, f))
         assert np.all(a == a[0]), f
@@ -136,8 +138,8 @@ def test_scale_equivariance(factor, exact):
     xs = (xyz.astype(np.float64) * factor).astype(np.float32)
     tree_s = build_tree(xs, alive, CFG)
     far = 1e3
-    seg = intersect(tree, make_rays(o, d, far=far), CFG)
-    seg_s = intersect(tree_s, make_rays(o.astype(np.float64) * factor, d, far=far * factor), CFG)
+    seg = intersect(tree, make_rays(o, d, far=far), CFG, CAPS)
+    seg_s = intersect(tree_s, make_rays(o.astype(np.float64) * factor, d, far=far * factor), CFG, CAPS)
     assert int(jnp.max(seg.overflow)) == 0 and int(jnp.max(seg_s.overflow)) == 0
     same = np.all((np.asarray(seg.node) == np.asarray(seg_s.node)) & (np.asarray(seg.valid) == np.asarray(seg_s.valid)),
                   axis=1)
@@ -156,15 +158,16 @@ def test_overflow_counted_and_retry_reallocates():
     tree = build_tree(xyz, alive, CFG)
     o, d = hard_rays(tree, xyz, alive, seed=1)
     rays = make_rays(o, d)
-    small = CFG.replace(frontier_capacity=4, max_segments=2)
-    seg = intersect(tree, rays, small)
+    small = Capacities(frontier=4, max_segments=2)
+    seg = intersect(tree, rays, CFG, small)
     assert int(jnp.max(seg.frontier_overflow)) > 0 and int(jnp.max(seg.segment_overflow)) > 0
     # never silent: every ray whose reference list is longer than what came back reports overflow
-    full, cfg = intersect_checked(tree, rays, small)
-    assert cfg.frontier_capacity > 4 and cfg.max_segments > 2
+    full, cap = intersect_checked(tree, rays, CFG, small)
+    assert cap.frontier > 4 and cap.max_segments > 2
     lost = np.asarray(full.num_segments) > np.asarray(seg.num_segments)
     assert np.all(np.asarray(seg.overflow)[lost] > 0)
-    compare(tree, rays, full, cfg)
+    np.testing.assert_array_equal(np.asarray(seg.lost().count), np.asarray(seg.overflow))
+    compare(tree, rays, full, CFG)
 
 
 SEG_FIELDS = ("t_lo", "t_hi", "node", "level", "valid", "frontier_overflow", "segment_overflow", "num_emitted")
@@ -172,28 +175,27 @@ SEG_FIELDS = ("t_lo", "t_hi", "node", "level", "valid", "frontier_overflow", "se
 
 @pytest.mark.parametrize("name", ["sphere_700", "coplanar", "random_300"])
 def test_two_pass_equals_one_wide_pass(name):
-    tree, rays, wide = hard_case(name)
-    one = intersect(tree, rays, wide)
+    tree, rays, cfg = hard_case(name)
+    one = intersect(tree, rays, cfg, WIDE)
     assert int(jnp.max(one.frontier_overflow)) == 0
-    narrow = intersect(tree, rays, wide.replace(frontier_capacity=2))
+    narrow = intersect(tree, rays, cfg, WIDE.replace(frontier=2))
     assert int(jnp.sum(narrow.frontier_overflow > 0)) > 0  # the second pass has rays to walk again
-    two = intersect(tree, rays, wide.replace(first_pass_frontier=2, retry_share=1.0))
+    two = intersect(tree, rays, cfg, WIDE.replace(first_pass_frontier=2, retry_share=1.0))
     for f in SEG_FIELDS:
         np.testing.assert_array_equal(np.asarray(getattr(two, f)), np.asarray(getattr(one, f)), err_msg=f)
 
 
 def test_two_pass_beyond_the_retry_share_is_counted():
     xyz, alive = CLOUDS["sphere_700"]
-    wide = CFG.replace(frontier_capacity=64, max_segments=32)
-    tree = build_tree(xyz, alive, wide)
+    tree = build_tree(xyz, alive, CFG)
     o, d = hard_rays(tree, xyz, alive, seed=1)
     rays = make_rays(o, d)
-    one, narrow = intersect(tree, rays, wide), intersect(tree, rays, wide.replace(frontier_capacity=2))
+    one, narrow = intersect(tree, rays, CFG, WIDE), intersect(tree, rays, CFG, WIDE.replace(frontier=2))
     over = np.asarray(narrow.frontier_overflow) > 0
     cap = 2
     assert over.sum() > cap
-    cfg = wide.replace(first_pass_frontier=2, retry_share=cap / rays.num_rays)
-    two = intersect(tree, rays, cfg)
+    caps = WIDE.replace(first_pass_frontier=2, retry_share=cap / rays.num_rays)
+    two = intersect(tree, rays, CFG, caps)
     redone = np.flatnonzero(over)[:cap]  # the first overflowing rays are walked again
     kept = np.flatnonzero(over)[cap:]
     for f in SEG_FIELDS:
@@ -202,27 +204,29 @@ def test_two_pass_beyond_the_retry_share_is_counted():
         np.testing.assert_array_equal(got[~over], a[~over], err_msg=f)
         np.testing.assert_array_equal(got[kept], b[kept], err_msg=f)
     assert np.all(np.asarray(two.frontier_overflow)[kept] > 0)  # never silent
-    full, grown = intersect_checked(tree, rays, cfg)  # growth retries more rays before it widens
-    assert grown.first_pass_frontier == 2 and grown.frontier_capacity == 64 and grown.retry_share > cfg.retry_share
-    compare(tree, rays, full, grown)
-    assert cfg.replace(retry_share=1.0).widened() == cfg.replace(retry_share=1.0, frontier_capacity=128)
-    assert wide.widened() == wide.replace(frontier_capacity=128)
+    full, grown = intersect_checked(tree, rays, CFG, caps)  # growth retries more rays before it widens
+    assert grown.first_pass_frontier == 2 and grown.frontier == 64 and grown.retry_share > caps.retry_share
+    compare(tree, rays, full, CFG)
+    all_retried = caps.replace(retry_share=1.0)
+    assert grow(all_retried, two.lost()) == all_retried.replace(frontier=128)
+    assert grow(WIDE, narrow.lost()) == WIDE.replace(frontier=128)
 
 
 def test_grad_wrt_origin_finite():
-    one_pass = CFG.replace(depth=10)
-    two_pass = one_pass.replace(frontier_capacity=64, first_pass_frontier=2, retry_share=1.0)
-    for name, cfg in (("sphere_700", one_pass), ("identical", one_pass), ("coplanar", one_pass),
-                      ("one_point", one_pass), ("sphere_700", two_pass), ("coplanar", two_pass)):
+    cfg = CFG.replace(depth=10)
+    one_pass = CAPS
+    two_pass = WIDE.replace(first_pass_frontier=2, retry_share=1.0)
+    for name, caps in (("sphere_700", one_pass), ("identical", one_pass), ("coplanar", one_pass),
+                       ("one_point", one_pass), ("sphere_700", two_pass), ("coplanar", two_pass)):
         xyz, alive = padded(name)
         tree = build_tree(xyz, alive, cfg)
         o, d = hard_rays(tree, xyz, alive, n_boxes=3)
 
-        def loss(origin, d=d, tree=tree, cfg=cfg):
+        def loss(origin, d=d, tree=tree, caps=caps):
             rays = make_rays(np.zeros((1, 3)), np.ones((1, 3)))
             rays = rays.replace(origin=origin, direction=jnp.asarray(d), near=jnp.zeros(len(d)),
                                 far=jnp.full(len(d), 1e3))
-            seg = intersect(tree, rays, cfg)
+            seg = intersect(tree, rays, cfg, caps)
             return jnp.sum(jnp.where(seg.valid, seg.t_hi - seg.t_lo + 0.1 * seg.t_lo, 0.0))
 
         g = jax.grad(loss)(jnp.asarray(o))
@@ -230,18 +234,19 @@ def test_grad_wrt_origin_finite():
         assert float(jnp.abs(g).sum()) > 0 or name == "one_point"
 
 
-@pytest.mark.parametrize("cfg", [tiny_tree(depth=10), tiny_tree(depth=10, first_pass_frontier=4)])
-def test_no_recompilation_for_same_capacities(cfg):
+@pytest.mark.parametrize("caps", [tiny_caps(), tiny_caps(first_pass_frontier=4)])
+def test_no_recompilation_for_same_capacities(caps):
+    cfg = tiny_tree(depth=10)
     xyz = sphere(1000, seed=7)
     t1 = build_tree(xyz, np.arange(1000) < 900, cfg)
     t2 = build_tree(xyz * 1.5, np.arange(1000) >= 50, cfg)
     o, d = hard_rays(t1, xyz, np.ones(1000, bool), n_random=10)
     r1 = make_rays(o, d)
     r2 = make_rays(o + 0.01, d[::-1])
-    intersect(t1, r1, cfg).t_lo.block_until_ready()
+    intersect(t1, r1, cfg, caps).t_lo.block_until_ready()
     size = intersect._cache_size()
     for tree, rays in ((t1, r2), (t2, r1), (t2, r2)):
-        intersect(tree, rays, cfg).t_lo.block_until_ready()
+        intersect(tree, rays, cfg, caps).t_lo.block_until_ready()
     assert intersect._cache_size() == size
 
 

@@ -99,10 +99,6 @@ def test_build_errors(xyz, alive, match):
     [
         (dict(knn_k=200), r"KDTreeConfig.knn_k: expected an integer in \[1, 96\], found 200"),
         (dict(depth=3), r"KDTreeConfig.depth: expected None or an integer in .* = \[5, 21\], found 3"),
-        (dict(frontier_capacity=1), r"KDTreeConfig.frontier_capacity"),
-        (dict(first_pass_frontier=64),
-         r"KDTreeConfig.first_pass_frontier: expected None or an integer in .* = \[2, 64\), found 64"),
-        (dict(retry_share=0.0), r"KDTreeConfig.retry_share: expected a share in \(0, 1\]"),
         (dict(margin_factor=0.0), r"KDTreeConfig.margin_factor: expected > 0"),
     ],
 )
@@ -112,7 +108,7 @@ def test_config_errors(kwargs, match):
 
 
 def test_config_is_hashable_with_the_papers_defaults():
-    assert hash(KDTreeConfig(depth=21, max_segments=64)) == hash(KDTreeConfig(depth=21, max_segments=64))
+    assert hash(KDTreeConfig(depth=21)) == hash(KDTreeConfig(depth=21))
     assert KDTreeConfig().num_candidates == 96 and KDTreeConfig().knn_k == 32
     assert tiny_tree().num_candidates == 16
 

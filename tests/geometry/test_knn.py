@@ -20,7 +20,7 @@ from tests.mini_presets import tiny_tree
 from .clouds import CLOUDS, hard_rays, make_rays, padded, sphere
 from .reference import interpolate_reference, knn_reference
 
-CFG = tiny_tree(depth=10, frontier_capacity=64, max_segments=32)
+CFG = tiny_tree(depth=10)
 
 
 def state_for(xyz, alive, seed=0, feature_dim=4):
@@ -105,7 +105,7 @@ def test_matches_reference(name, exact):
 
 
 def test_default_config_recall_and_reference():
-    cfg = KDTreeConfig(depth=12, max_segments=32)
+    cfg = KDTreeConfig(depth=12)
     xyz = sphere(3000, seed=9)
     alive = np.ones(len(xyz), bool)
     tree = build_tree(xyz, alive, cfg)

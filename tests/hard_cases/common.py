@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, settings
 
 from ne_jax.data.rays import Rays
 from ne_jax.geometry import PointState
+from ne_jax.geometry.capacity import Capacities
 
 from tests.mini_presets import tiny_tree
 
@@ -61,7 +62,8 @@ HYP = settings(deadline=None, derandomize=True, print_blob=True,
 
 # One capacity / depth / config for every cloud of the suite: each jitted function compiles once.
 CAPACITY = 256
-CFG = tiny_tree(depth=8, frontier_capacity=64, max_segments=48)
+CFG = tiny_tree(depth=8)
+CAPS = Capacities(frontier=64, max_segments=48, segments_per_ray=None)
 
 CLOUD_KINDS = ("uniform", "sphere", "coplanar", "collinear", "duplicates", "clusters", "grid")
 

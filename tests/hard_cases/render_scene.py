@@ -19,15 +19,16 @@ import numpy as np
 
 from ne_jax.data.rays import Rays
 from ne_jax.geometry import PointState
+from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.kdtree import KDTreeConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import PointScene, RenderConfig, render_rays
 from ne_jax.render.shading import init_color_model
 
-# tests/mini_presets.tiny_render spelled out: this file also runs as a script in a subprocess
-CFG = RenderConfig(tree=KDTreeConfig(depth=8, candidate_min=16, knn_k=8, num_render_levels=2, frontier_capacity=64,
-                                     max_segments=48),
-                   quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=1024, segments_per_ray=None)
+# tests/mini_presets.tiny_render at depth 8, spelled out: this file also runs as a script in a subprocess
+CFG = RenderConfig(tree=KDTreeConfig(depth=8, candidate_min=16, knn_k=8, num_render_levels=2),
+                   quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=1024)
+CAPS = Capacities(frontier=64, max_segments=48, segments_per_ray=None)
 CAPACITY, N_POINTS, N_RAYS = 256, 200, 64
 
 
@@ -74,7 +75,7 @@ def build(inputs: dict, dtype=None, scale: float = 1.0, alive=None, conf_logit=N
                                 feature_dim=32, dtype=dtype)
     pts = pts.replace(feature=a(inputs["feature"]), normal=a(inputs["normal"]),
                       conf_logit=a(inputs["conf_logit"] if conf_logit is None else conf_logit))
-    scene = PointScene.build(pts, CFG)
+    scene = PointScene.build(pts, CFG, CAPS)
     scene = scene.replace(points=scene.points.replace(alive=jnp.asarray(alive)))
     r = len(inputs["origin"])
     rays = Rays(origin=a(np.asarray(inputs["origin"]) * scale), direction=a(inputs["direction"]),
@@ -89,7 +90,9 @@ def render(cfg, params, scene, rays, bg):
 
 def render_arrays(inputs: dict) -> dict:
     out = render(CFG, *build(inputs))
-    return {k: np.asarray(v) for k, v in vars(out).items()}
+    arrays = {k: np.asarray(v) for k, v in vars(out).items() if k != "lost"}
+    arrays["lost"] = np.asarray(out.lost.count)  # segments and frontier nodes lost per ray
+    return arrays
 
 
 if __name__ == "__main__":

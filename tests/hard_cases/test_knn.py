@@ -23,7 +23,7 @@ from ne_jax.geometry.knn import knn_integrate
 
 from geometry.reference import interpolate_reference, knn_reference
 
-from .common import CFG, CLOUD_KINDS, DTYPE, EPS, HYP, TOL, assert_finite, make_cloud, make_rays, make_state
+from .common import CAPS, CFG, CLOUD_KINDS, DTYPE, EPS, HYP, TOL, assert_finite, make_cloud, make_rays, make_state
 from .test_traversal import NUM_RAYS, hard_rays
 
 B, S = 64, 4  # fixed segment batch and samples per segment: one compilation per function
@@ -34,7 +34,7 @@ def segments_and_samples(tree, xyz, alive, rng):
     up to 16 segments whose samples sit exactly on (or a subnormal step off) an alive point."""
     o, d = hard_rays(tree, xyz, alive, rng)
     rays = make_rays(o, d, num=NUM_RAYS)
-    seg = intersect(tree, rays, CFG)
+    seg = intersect(tree, rays, CFG, CAPS)
     r, m = np.nonzero(np.asarray(seg.valid))
     pick = rng.choice(len(r), min(48, len(r)), replace=False) if len(r) else np.zeros(0, int)
     r, m = r[pick], m[pick]

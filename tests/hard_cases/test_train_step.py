@@ -30,7 +30,7 @@ from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
 
 from .common import DTYPE, X64, aimed_rays, assert_finite, make_cloud, make_rays, make_state
-from .render_scene import CAPACITY, CFG, N_POINTS, N_RAYS, build, scene_inputs
+from .render_scene import CAPACITY, CAPS, CFG, N_POINTS, N_RAYS, build, scene_inputs
 
 TCFG = TrainConfig(total_steps=100)
 STEP = make_train_step(TCFG, CFG)
@@ -66,7 +66,7 @@ def step_ok(state, scene, batch):
     assert_finite(m, "metrics ")
     assert_finite((new.params, new.points, new.opt_state), "state ")
     assert np.isfinite(float(m["loss/total"]))
-    assert int(m["overflow"]) == 0 and int(m["dropped"]) == 0
+    assert int(m["lost/frontier"]) == 0 and int(m["lost/slots"]) == 0 and int(m["lost/packing"]) == 0
     return new, m
 
 
@@ -120,7 +120,7 @@ def test_coincident_points(inputs):
     xyz, alive = make_cloud("duplicates", N_POINTS, seed=3)  # ~33 positions, each ~6 times
     assert len(np.unique(xyz[alive], axis=0)) < alive.sum() // 3
     points = make_state(xyz, alive, seed=3, feature_dim=CFG.shading.feature_dim)
-    scene = PointScene.build(points, CFG)
+    scene = PointScene.build(points, CFG, CAPS)
     rng = np.random.default_rng(4)
     origin, direction = aimed_rays(xyz, alive, rng, N_RAYS, jitter=0.01)
     batch = make_batch(make_rays(origin, direction, near=0.0, far=20.0), [1.0, 1.0, 1.0])

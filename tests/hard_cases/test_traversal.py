@@ -30,7 +30,7 @@ from ne_jax.geometry import build_tree, intersect
 
 from geometry.reference import minimal_voxels
 
-from .common import CFG, CLOUD_KINDS, DTYPE, HYP, TOL, aimed_rays, assert_finite, make_cloud, make_rays
+from .common import CAPS, CFG, CLOUD_KINDS, DTYPE, HYP, TOL, aimed_rays, assert_finite, make_cloud, make_rays
 
 NUM_RAYS = 96
 
@@ -130,9 +130,9 @@ def compare_to_reference(tree, rays, seg, cfg):
     return len(o) - ambiguous
 
 
-def _grad_loss(tree, rays, cfg=CFG):
+def _grad_loss(tree, rays, caps=CAPS):
     def loss(origin, direction):
-        seg = intersect(tree, rays.replace(origin=origin, direction=direction), cfg)
+        seg = intersect(tree, rays.replace(origin=origin, direction=direction), CFG, caps)
         return jnp.sum(jnp.where(seg.valid, seg.t_hi - seg.t_lo + 0.1 * seg.t_lo, 0.0))
 
     return jax.grad(loss, argnums=(0, 1))(rays.origin, rays.direction)
@@ -146,7 +146,7 @@ def test_matches_reference_on_hard_rays(kind, n, seed, scale, deleted):
     tree = build_tree(xyz, alive, CFG)
     o, d = hard_rays(tree, xyz, alive, np.random.default_rng(seed))
     rays = make_rays(o, d, num=NUM_RAYS)
-    seg = intersect(tree, rays, CFG)
+    seg = intersect(tree, rays, CFG, CAPS)
     assert seg.t_lo.dtype == DTYPE
     assert_finite(seg)
     compare_to_reference(tree, rays, seg, CFG)
@@ -161,8 +161,8 @@ def test_two_pass_walk_equals_one_pass_on_hard_rays(kind, n, seed, scale):
     xyz, alive = make_cloud(kind, n, seed, scale=scale)
     tree = build_tree(xyz, alive, CFG)
     rays = make_rays(*hard_rays(tree, xyz, alive, np.random.default_rng(seed)), num=NUM_RAYS)
-    two_pass = CFG.replace(first_pass_frontier=2, retry_share=1.0)
-    one, two = intersect(tree, rays, CFG), intersect(tree, rays, two_pass)
+    two_pass = CAPS.replace(first_pass_frontier=2, retry_share=1.0)
+    one, two = intersect(tree, rays, CFG, CAPS), intersect(tree, rays, CFG, two_pass)
     for f in ("t_lo", "t_hi", "node", "level", "valid", "frontier_overflow", "segment_overflow", "num_emitted"):
         np.testing.assert_array_equal(np.asarray(getattr(two, f)), np.asarray(getattr(one, f)), err_msg=f)
     assert_finite(_grad_loss(tree, rays, two_pass), "grad ")
@@ -176,7 +176,7 @@ def test_face_plane_rays_see_the_box_and_one_ulp_outside_does_not():
     tree = build_tree(xyz, alive, CFG)
     o, d = hard_rays(tree, xyz, alive, np.random.default_rng(1))
     rays = make_rays(o, d, num=NUM_RAYS)
-    seg = intersect(tree, rays, CFG)
+    seg = intersect(tree, rays, CFG, CAPS)
     assert compare_to_reference(tree, rays, seg, CFG) >= NUM_RAYS - NUM_RAYS // 4
     # the face-plane rays (the first of each group of six) hit something
     assert bool(np.asarray(seg.valid)[0].any())

@@ -134,7 +134,7 @@ def test_matches_float64_loop(radius, effects):
     np.testing.assert_allclose(np.asarray(out.opacity), ref["opacity"], atol=2e-6, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(out.depth), ref["depth"], atol=1e-5, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(out.normal), ref["normal"], atol=2e-6, rtol=1e-5)
-    assert not np.any(np.asarray(out.overflow)) and not np.any(np.asarray(out.dropped))
+    assert not np.any(np.asarray(out.lost.count))
 
 
 def test_single_point_lands_on_hand_computed_pixel():

@@ -27,7 +27,7 @@ from ne_jax.render.shading import init_color_model, shade
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
 
-from tests.mini_presets import tiny_render
+from tests.mini_presets import tiny_caps, tiny_render
 from tests.render.scenes import glossy_points
 
 RES = 16
@@ -46,7 +46,7 @@ def _stochastic(cfg: RenderConfig) -> RenderConfig:
 def setup():
     points = glossy_points()
     cfg = tiny_render(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
-    scene = PointScene.build(points, cfg)
+    scene = PointScene.build(points, cfg, tiny_caps())
     params = init_color_model(cfg.shading, jax.random.key(0))
     camera = Camera.from_fov(cameras.orbit_cameras(8)[1], RES, RES, cameras.CAMERA_ANGLE_X)
     return cfg, params, scene, camera
@@ -104,8 +104,10 @@ def test_field_constant_along_rays_renders_as_the_segment_mode(setup, rule):
     assert op.max() > 0.5 and (op == 0).any()  # the test means something: surfaces and misses
     for name in ("rgb", "opacity", "normal"):
         np.testing.assert_allclose(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), atol=1e-5, err_msg=name)
-    for name in ("num_segments", "overflow", "dropped"):
+    for name in ("num_segments",):
         np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)))
+    for name in ("frontier", "slots", "packing", "emitted"):
+        np.testing.assert_array_equal(np.asarray(getattr(b.lost, name)), np.asarray(getattr(a.lost, name)))
     # and with the scene's own (varying) features the two modes do differ: the switch does something
     c = render_rays(cfg, params, scene, rays, BG, key)
     d = render_rays(cfg.replace(integration=SAMPLES), params, scene, rays, BG, key)
@@ -125,14 +127,14 @@ def _two_plane_scene(cfg):
                                    normal=np.tile([0.0, 0.0, 1.0], (len(xyz), 1)).astype(np.float32))
     points = points.replace(feature=jnp.asarray(rng.normal(0, 0.7, points.feature.shape), jnp.float32),
                             conf_logit=jnp.asarray(rng.normal(0, 1, points.conf_logit.shape), jnp.float32))
-    return PointScene.build(points, cfg)
+    return PointScene.build(points, cfg, tiny_caps())
 
 
 def _reference(cfg, params, scene, rays, background):
     """Per-sample compositing in float64 with a plain loop: segments as ``intersect`` emits them,
     sample ``j`` of ``s`` at the midpoint of sub-interval ``j``, its own KNN feature and shading
     (the library's, float32), alpha ``1 - exp(-sigma L / s)`` front to back."""
-    seg = jax.device_get(intersect(scene.tree, rays, cfg.tree))
+    seg = jax.device_get(intersect(scene.tree, rays, cfg.tree, scene.capacities))
     spacing = float(scene.tree.spacing)
     depth = int(scene.tree.depth)
     o = np.asarray(rays.origin, np.float64)
@@ -184,12 +186,13 @@ def test_matches_a_float64_per_sample_reference():
     bg = jnp.asarray([0.2, 0.4, 0.6])
     ref = _reference(base, params, scene, rays, bg)
     for segments_per_ray in (None, 8.0):
-        _check_against_reference(base.replace(segments_per_ray=segments_per_ray), params, scene, rays, bg, ref)
+        budget = scene.replace(capacities=scene.capacities.replace(segments_per_ray=segments_per_ray))
+        _check_against_reference(base, params, budget, rays, bg, ref)
 
 
 def _check_against_reference(cfg, params, scene, rays, bg, ref):
     out, aux = _render_aux(cfg, params, scene, rays, bg)
-    assert int(out.dropped.sum()) == 0 and int(out.overflow.sum()) == 0
+    assert int(out.lost.count.sum()) == 0
     ref_rgb, ref_op, ref_depth, ref_w = ref
     assert (np.asarray(out.num_segments)[:3] >= 2).all() and int(out.num_segments[3]) == 0
     assert 0.05 < ref_op[:3].min() and ref_op[4] > 0.05  # the test means something: partly opaque rays
@@ -197,7 +200,7 @@ def _check_against_reference(cfg, params, scene, rays, bg, ref):
     np.testing.assert_allclose(np.asarray(out.opacity), ref_op, atol=2e-5)
     np.testing.assert_allclose(np.asarray(out.depth), ref_depth, atol=2e-5)
     # aux: one slot per sample, in ray order, the same weights
-    m, ns = cfg.tree.max_segments, cfg.quadrature.max_samples
+    m, ns = scene.capacities.max_segments, cfg.quadrature.max_samples
     assert aux.valid.shape == (5, m * ns) and aux.normal_moment.shape == (5, m * ns, 3, 3)
     valid = np.asarray(aux.valid)
     for r in range(5):
@@ -209,7 +212,7 @@ def _check_against_reference(cfg, params, scene, rays, bg, ref):
     conf = np.asarray(aux.confidence)[valid]
     np.testing.assert_allclose(np.trace(np.asarray(aux.normal_moment)[valid], axis1=-2, axis2=-1), conf, atol=1e-5)
     # the sub-intervals of a segment tile it: lengths sum to the segments' lengths
-    seg = jax.device_get(intersect(scene.tree, rays, cfg.tree))
+    seg = jax.device_get(intersect(scene.tree, rays, cfg.tree, scene.capacities))
     seg_len = np.where(seg.valid, seg.t_hi - seg.t_lo, 0.0).sum(-1) / float(scene.tree.spacing)
     np.testing.assert_allclose(np.asarray(aux.lengths).sum(-1), seg_len, rtol=1e-5, atol=1e-6)
 
@@ -221,14 +224,17 @@ def test_packing_drops_are_counted_then_grown(setup):
     cfg, params, scene, camera = setup
     cfg = cfg.replace(integration=SAMPLES)
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
-    full = _render(cfg.replace(segments_per_ray=None), params, scene, rays, BG)
+    def budget(b):
+        return scene.replace(capacities=scene.capacities.replace(segments_per_ray=b))
+
+    full = _render(cfg, params, budget(None), rays, BG)
     packed = _render(cfg, params, scene, rays, BG)
     np.testing.assert_allclose(np.asarray(packed.rgb), np.asarray(full.rgb), atol=1e-6)
-    starved = _render(cfg.replace(segments_per_ray=0.05), params, scene, rays, BG)
-    lost = int(starved.dropped.sum())
+    starved = _render(cfg, params, budget(0.05), rays, BG)
+    lost = int(starved.lost.packing.sum())
     assert lost > 0 and int(starved.num_segments.sum()) + lost == int(full.num_segments.sum())
-    grown = render_chunked(cfg.replace(segments_per_ray=0.05), params, scene, rays, BG)  # one chunk
-    assert int(grown.dropped.sum()) == 0
+    grown = render_chunked(cfg, params, budget(0.05), rays, BG)  # one chunk
+    assert int(grown.lost.count.sum()) == 0
     np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(full.rgb), atol=1e-6)
 
 

@@ -10,6 +10,7 @@ from ne_jax.benchmark import raycaster
 from ne_jax.benchmark import scenes as S
 from ne_jax.data import cameras
 from ne_jax.data.rays import Camera, Rays, camera_rays
+from ne_jax.geometry.capacity import Capacities
 from ne_jax.render.renderer import (
     PointScene,
     RenderConfig,
@@ -20,7 +21,7 @@ from ne_jax.render.renderer import (
 )
 from ne_jax.render.shading import init_color_model
 
-from tests.mini_presets import tiny_render
+from tests.mini_presets import tiny_caps, tiny_render
 from tests.render.scenes import glossy_points
 
 RES = 24
@@ -31,7 +32,7 @@ BG = jnp.array([1.0, 1.0, 1.0])
 def setup():
     points = glossy_points()
     cfg = tiny_render()
-    scene = PointScene.build(points, cfg)
+    scene = PointScene.build(points, cfg, tiny_caps())
     params = init_color_model(cfg.shading, jax.random.key(0))
     c2w = cameras.orbit_cameras(8)[1]
     camera = Camera.from_fov(c2w, RES, RES, cameras.CAMERA_ANGLE_X)
@@ -53,33 +54,39 @@ def test_random_model_renders_a_benchmark_camera(setup):
     assert empty.sum() > RES * RES / 4
     np.testing.assert_array_equal(np.asarray(out.rgb)[empty], np.ones((empty.sum(), 3)))  # pure background
     np.testing.assert_array_equal(op[empty], 0.0)
-    assert int(jnp.max(out.overflow)) == 0 and int(jnp.max(out.dropped)) == 0
+    assert int(jnp.max(out.lost.count)) == 0
 
 
 def test_packing_changes_nothing_and_drops_are_counted_then_grown(setup):
     cfg, params, scene, camera, _ = setup
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
-    full = render_rays(cfg.replace(segments_per_ray=None), params, scene, rays, BG)
-    packed = render_rays(cfg.replace(segments_per_ray=8.0), params, scene, rays, BG)
+    def budget(b):
+        return scene.replace(capacities=scene.capacities.replace(segments_per_ray=b))
+
+    full = render_rays(cfg, params, budget(None), rays, BG)
+    packed = render_rays(cfg, params, budget(8.0), rays, BG)
     np.testing.assert_allclose(np.asarray(packed.rgb), np.asarray(full.rgb), atol=1e-6)
-    assert int(packed.dropped.sum()) == 0
-    starved = render_rays(cfg.replace(segments_per_ray=0.05), params, scene, rays, BG)
-    lost = int(starved.dropped.sum())
+    assert int(packed.lost.packing.sum()) == 0
+    starved = render_rays(cfg, params, budget(0.05), rays, BG)
+    lost = int(starved.lost.packing.sum())
     assert lost > 0 and int(starved.num_segments.sum()) + lost == int(full.num_segments.sum())
-    grown = render_chunked(cfg.replace(segments_per_ray=0.05, chunk=RES * RES), params, scene, rays, BG)
-    assert int(grown.dropped.sum()) == 0
+    assert int(starved.lost.frontier.sum()) == 0 and int(starved.lost.slots.sum()) == 0
+    grown = render_chunked(cfg.replace(chunk=RES * RES), params, budget(0.05), rays, BG)
+    assert int(grown.lost.count.sum()) == 0
     np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(full.rgb), atol=1e-6)
 
 
 def test_traversal_overflow_is_reported_then_grown(setup):
     cfg, params, scene, camera, _ = setup
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
-    small = cfg.replace(tree=cfg.tree.replace(max_segments=2), chunk=RES * RES)
-    out = render_rays(small, params, scene, rays, BG)
-    assert int(out.overflow.max()) > 0
-    ref = render_rays(cfg.replace(tree=cfg.tree.replace(max_segments=64)), params, scene, rays, BG)
-    grown = render_chunked(small, params, scene, rays, BG, max_grow=6)
-    assert int(grown.overflow.max()) == 0
+    def slots(m):
+        return scene.replace(capacities=scene.capacities.replace(max_segments=m))
+
+    out = render_rays(cfg, params, slots(2), rays, BG)
+    assert int(out.lost.slots.max()) > 0
+    ref = render_rays(cfg, params, slots(64), rays, BG)
+    grown = render_chunked(cfg.replace(chunk=RES * RES), params, slots(2), rays, BG, max_grow=6)
+    assert int(grown.lost.count.max()) == 0
     np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(ref.rgb), atol=1e-6)
 
 
@@ -163,8 +170,8 @@ def test_config_errors_name_the_field():
 
     with pytest.raises(ValueError, match="samples_per_level"):
         RenderConfig(quadrature=QuadratureConfig(samples_per_level=(8, 11)))
-    with pytest.raises(ValueError, match="segments_per_ray"):
-        RenderConfig(segments_per_ray=0.0)
+    with pytest.raises(ValueError, match="Capacities.segments_per_ray"):
+        Capacities(segments_per_ray=0.0)
 
 
 def test_rays_that_miss_everything_are_background(setup):

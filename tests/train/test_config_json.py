@@ -14,7 +14,7 @@ def test_configs_round_trip_with_types():
     from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.render.renderer import RenderConfig
 
-    paper = RenderConfig(tree=KDTreeConfig(depth=21, max_segments=64), segments_per_ray=None)
+    paper = RenderConfig(tree=KDTreeConfig(depth=21))
     for cfg in (SMALL_TCFG, SMALL_RCFG, paper,
                 RCFG.with_effects(background="sphere")):
         data = json.loads(json.dumps(cj.config_to_json(cfg)))
@@ -24,28 +24,37 @@ def test_configs_round_trip_with_types():
         cj.config_from_json({"__type__": "os:system", "command": "true"})
 
 
-def test_fields_added_later_keep_old_keys():
-    """A field flagged ADDED_LATER is left out of the key at its default (keys of runs made before it
-    existed stay valid) and counts once set; config.json always holds it."""
-    import dataclasses
-    import hashlib
-
-    from ne_jax.geometry.kdtree import KDTreeConfig
+def test_buffer_sizes_are_saved_but_not_settings():
+    """``RunConfig.capacities`` is written to config.json and read back, but is neither part of the
+    run's key nor a difference that refuses a resume; any other field still is."""
     from ne_jax.train.run import RunConfig
 
-    added = [f.name for f in dataclasses.fields(KDTreeConfig) if f.metadata.get(cj.ADDED_LATER)]
-    assert added == ["first_pass_frontier", "retry_share"]
-    run = RunConfig.tiny()  # walks in one pass: both fields at their defaults
-    assert run.render.tree.first_pass_frontier is None
-    stripped = cj.config_to_json(run)
-    for name in added:
-        del stripped["render"]["tree"][name]
-    old_key = hashlib.sha256(json.dumps(stripped, sort_keys=True).encode()).hexdigest()[:12]
-    assert cj.config_key(run) == old_key
-    assert "first_pass_frontier" in cj.config_to_json(run)["render"]["tree"]
-    two_pass = run.replace(render=run.render.replace(tree=run.render.tree.replace(first_pass_frontier=8)))
-    assert cj.config_key(two_pass) != old_key
-    assert cj.config_from_json(json.loads(json.dumps(stripped))) == run  # an old config.json reads back the same
+    run = RunConfig.tiny()
+    bigger = run.replace(capacities=run.capacities.replace(frontier=128, segments_per_ray=None))
+    data = json.loads(json.dumps(cj.config_to_json(bigger)))
+    assert data["capacities"]["frontier"] == 128 and cj.config_from_json(data) == bigger
+    assert cj.config_key(bigger) == cj.config_key(run)
+    assert cj.config_diff(cj.config_to_json(bigger), cj.config_to_json(run)) == []
+    assert cj.config_key(run.replace(seed=1)) != cj.config_key(run)
+    assert cj.config_diff(cj.config_to_json(run.replace(seed=1)), cj.config_to_json(run)) == [
+        "seed: checkpoint 1, run 0"]
+
+
+def test_a_config_with_buffer_sizes_among_its_settings_reads_back():
+    """config.json files that stored the buffer sizes in the tree and render configs read back with
+    them moved to ``RunConfig.capacities`` (and are no difference to the same run written now)."""
+    from ne_jax.train.run import RunConfig
+
+    run = RunConfig.default()
+    old = json.loads(json.dumps(cj.config_to_json(run)))
+    del old["capacities"]
+    old["render"]["tree"].update(frontier_capacity=64, first_pass_frontier=16, retry_share=0.25, max_segments=32)
+    old["render"]["segments_per_ray"] = 8.0
+    back = cj.config_from_json(old)
+    assert back == run.replace(capacities=run.capacities.replace(segments_per_ray=8.0))
+    assert cj.config_diff(old, cj.config_to_json(run)) == []
+    render_only = cj.config_from_json(old["render"])  # not a run: the sizes are dropped
+    assert render_only == run.render
 
 
 def test_a_field_added_later_at_its_default_is_no_difference():

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from ne_jax.benchmark.generate import generate_scene
+from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.pointcloud.optimise import (
     PointOptConfig,
@@ -25,11 +26,11 @@ from ne_jax.pointcloud.optimise import (
 )
 from ne_jax.render.renderer import PointScene
 from ne_jax.train import CheckpointError, TrainConfig, make_train_step, sample_batch
-from ne_jax.train.loop import train
+from ne_jax.train.loop import TRAINING_GROWS, train
 from ne_jax.train.model import load_trained
 from ne_jax.train.sampler import build_pool
 
-from tests.mini_presets import TRAIN_SCENE, mini_run
+from tests.mini_presets import MINI_CAPS, TRAIN_SCENE, mini_run
 
 
 @pytest.fixture(scope="module")
@@ -117,8 +118,27 @@ def test_load_trained_gives_back_the_final_model(full_run, scene_dir):
     model = load_trained(full_run.run_dir)
     assert model.scene_dir == scene_dir.resolve()
     _same_state(model.state, full_run.state)
+    assert model.scene.capacities == full_run.scene.capacities  # the sizes in use, saved with the checkpoint
+    camera = load_split(scene_dir, "test").camera(0)
+    np.testing.assert_array_equal(np.asarray(model.render_image(camera).rgb),
+                                  np.asarray(full_run.render_image(camera).rgb))
     with pytest.raises(FileNotFoundError, match="training run directory"):
         load_trained(full_run.run_dir / "nope")
+
+
+def test_training_counts_traversal_losses_and_saves_the_capacities(scene_dir, tmp_path):
+    """Buffers too small for the scene (not a setting: the run's key is unchanged): the batches lose
+    frontier nodes and segment slots, each epoch's record says how many and which capacities were in
+    force, and the traversal is not grown in training (``TRAINING_GROWS``: only the packing
+    budget); the model comes back with the capacities it ended with."""
+    starved = mini_run(epochs=2, point_rounds=(1, 0), capacities=MINI_CAPS.replace(frontier=2, max_segments=2))
+    assert config_key(starved) == config_key(mini_run(epochs=2, point_rounds=(1, 0)))
+    model = train(starved, scene_dir, tmp_path / "starved", progress=False, log=lambda s: None)
+    for e in model.history:
+        assert e["lost"]["frontier"] > 0 and e["lost"]["slots"] > 0 and e["lost"]["rays"] == 3 * 128
+        assert e["capacities"]["frontier"] == 2 and e["capacities"]["max_segments"] == 2
+    assert TRAINING_GROWS == ("packing",)
+    assert load_trained(model.run_dir).scene.capacities == model.scene.capacities
 
 
 def test_empty_masks_fail_before_anything_is_written(scene_dir, tmp_path):
