@@ -4,7 +4,9 @@
 #   bash run.sh lint           the linter (ruff, configured in pyproject.toml) over the repository
 #   bash run.sh test [flags]   the test suite (flags go to pytest; NE_JAX_TEST_WORKERS=2 pytest-xdist
 #                              processes, one test file per worker at a time: one XLA:CPU program
-#                              does not fill two cores; 1 runs in-process; each on one host device,
+#                              does not fill two cores; a crashed worker ends the run instead of
+#                              being replaced, since xdist can wait forever on a replacement;
+#                              1 runs in-process; each on one host device,
 #                              NE_JAX_HOST_DEVICES=1 from tests/conftest.py), then, as a second process, the
 #                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
 #                              the sharding tests on 4 forced host devices (pytest -m multidevice tests/devices),
@@ -76,7 +78,7 @@ case "$cmd" in
     done
     workers="${NE_JAX_TEST_WORKERS:-2}"
     xdist=()
-    if [ "$workers" -gt 1 ]; then xdist=(-n "$workers" --dist loadfile); fi
+    if [ "$workers" -gt 1 ]; then xdist=(-n "$workers" --dist loadfile --max-worker-restart 0); fi
     .venv/bin/python -m pytest "${xdist[@]}" "$@"
     echo "run.sh: float64 step: JAX_ENABLE_X64=1 pytest tests/hard_cases" >&2
     JAX_ENABLE_X64=1 .venv/bin/python -m pytest tests/hard_cases -q

@@ -1,4 +1,4 @@
-"""The test suite runs on one host device unless told otherwise.
+"""Suite-wide settings: one host device per test process, and compiled programs freed per file.
 
 ``import ne_jax`` gives JAX one host device per usable CPU core (:mod:`ne_jax._platform`). The
 suite keeps one: ``bash run.sh test`` runs two pytest-xdist workers on a 2-core machine, so a
@@ -8,8 +8,28 @@ imports ne_jax or starts JAX (and inherited by the subprocesses tests start), un
 environment already sets it; a count given to JAX itself still wins, which is how the multi-device
 step (``XLA_FLAGS=--xla_force_host_platform_device_count=4 pytest -m multidevice tests/devices``)
 gets its four devices.
+
+Every XLA:CPU executable holds a few memory mappings of its own, and JAX keeps each one it
+compiled for as long as the process lives. A worker that runs hundreds of test files compiles
+tens of thousands of programs and reaches the kernel's limit on mappings per process
+(``vm.max_map_count``, 65,530 by default); the next compile then crashes the worker (a segfault
+or an abort inside ``backend_compile_and_load``). So the compiled programs are dropped after
+each test file (:func:`jax.clear_caches`), which bounds a worker's mappings by one file's.
 """
 
+import gc
 import os
 
+import pytest
+
 os.environ.setdefault("NE_JAX_HOST_DEVICES", "1")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """After each test file: drop JAX's compiled programs (and the memory mappings they hold)."""
+    yield
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
