@@ -99,8 +99,30 @@ def test_cli_make_benchmark_and_errors(tmp_path, capsys):
         main(["make-benchmark", "--preset", "huge", "--out", str(tmp_path)])
 
 
+def test_cli_demo_runs_every_stage_on_small_stand_ins(tmp_path, capsys, monkeypatch):
+    """``ne-jax demo`` through its four stages (benchmark, training, test views, orbit) with 16-px
+    scenes and a 4-step run in place of the ``tiny`` ones; the README's exact command is the slow
+    test below."""
+    import ne_jax.benchmark.generate as generate
+    import ne_jax.train.run as run
+
+    from tests.mini_presets import short_run
+
+    real = generate.generate_benchmark
+    monkeypatch.setattr(generate, "generate_benchmark", lambda root, preset, scenes, seed: real(root, GEN_SCENES,
+                                                                                                 scenes, seed))
+    monkeypatch.setattr(run, "get_run_preset", lambda name: short_run())
+    assert main(["demo", "--out", str(tmp_path), "--orbit-frames", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "[4/4] rendering an orbit" in out and "contact sheet" in out
+    assert (tmp_path / "contact_sheet.png").is_file() and (tmp_path / "run" / "orbit.gif").is_file()
+    assert (tmp_path / "run" / "eval_test").is_dir()
+    assert len(list_variants(tmp_path / "benchmark")) == 4 * 7  # original + six edits per scene
+
+
+@pytest.mark.slow
 def test_cli_demo_runs_end_to_end(tmp_path, capsys):
-    """The README's main command (tiny preset, all scenes)."""
+    """The README's main command (tiny preset, all scenes; about 6 minutes on 2 cores)."""
     assert main(["demo", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "contact sheet" in out

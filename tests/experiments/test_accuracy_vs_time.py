@@ -155,6 +155,7 @@ def test_image_study_needs_a_run(capsys):
         avt.main(["--study", "image", "--run", "no_such_run", "--test-views", "0"])
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_image_study_files_and_schema(image_run):
     out, res, run_dir = image_run
     for name in ("accuracy_vs_time_image_test.json", "accuracy_vs_time_image_test.md",
@@ -191,6 +192,7 @@ def test_image_study_files_and_schema(image_run):
     assert "Pareto front" in md and "the own config (`test`)" in md and res["command"] in md
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_image_study_summary_only_rewrites_the_presets_files(image_run, capsys):
     out, res, _ = image_run
     md = out / "accuracy_vs_time_image_test.md"
@@ -231,6 +233,7 @@ def test_image_frontier_settings_change_only_the_frontier():
     assert [(s.capacities.frontier, s.capacities.first_pass_frontier) for s in rows] == [(16, None), (32, 16)]
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_path):
     """``python -m experiments.bench_traversal --quick`` on the smoke-test model: the two-pass walk gives the
     reference's segments, pixels and (after 2 training steps) parameters exactly."""
@@ -247,6 +250,7 @@ def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_pa
         bench.main(["--run", str(tmp_path / "missing")])
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_bench_presets_quick(image_run, tmp_path):
     """``python -m experiments.bench_presets --quick`` on the smoke-test model: one row per preset measured, the
     ratios against ``default``, the projection from the measured step, and clear refusals."""
@@ -270,13 +274,23 @@ def test_bench_presets_quick(image_run, tmp_path):
         bench.main(["--run", str(run_dir), "--steps", "0"])
 
 
-def test_compare_runs_same_and_different(image_run, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def short_model(mini):
+    """The run directory of a model trained for a few steps on the mini scene."""
+    from ne_jax.train.loop import train
+
+    root, scene_dir, run = mini
+    train(run, scene_dir, root / "short_model", progress=False, log=lambda s: None)
+    return root / "short_model"
+
+
+def test_compare_runs_same_and_different(short_model, tmp_path, capsys):
     """``python -m experiments.compare_runs``: a run against a copy of itself is equal bit for bit (exit 0); a
     copy whose checkpoint holds other parameters is not (exit 1)."""
     import shutil
 
     compare = _load("compare_runs")
-    _, _, run_dir = image_run
+    run_dir = short_model
     assert compare.main([str(run_dir), str(run_dir)]) == 0
     assert "every array equal bit for bit: True" in capsys.readouterr().out
     import jax
@@ -293,6 +307,7 @@ def test_compare_runs_same_and_different(image_run, tmp_path, capsys):
     assert "every array equal bit for bit: False" in out and "B / A = 1.000" in out
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_image_study_sanity(image_run):
     _, res, _ = image_run
     for t in res["targets"]:
@@ -431,6 +446,7 @@ def test_choose_preset_rule():
     assert ch["pick"] == 0 and ch["confirmed"]
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_training_study_smoke_and_cache(mini):
     root, scene_dir, run = mini
     tr = _training()
