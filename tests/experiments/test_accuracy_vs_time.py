@@ -127,24 +127,24 @@ def mini(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def image_run(mini):
-    """A model trained for a few steps on the mini scene, then the image study in ``--quick`` mode on
-    it and its zero-shot "bend" edit."""
-    import time
-
+def short_model(mini):
+    """The run directory of a model trained for a few steps on the mini scene."""
     from ne_jax.train.loop import train
 
-    avt = _load()
     root, scene_dir, run = mini
-    t0 = time.perf_counter()
-    train(run, scene_dir, root / "run", progress=False, log=lambda s: None)
-    t1 = time.perf_counter()
+    train(run, scene_dir, root / "short_model", progress=False, log=lambda s: None)
+    return root / "short_model"
+
+
+@pytest.fixture(scope="module")
+def image_run(mini, short_model):
+    """The image study in ``--quick`` mode on the short model and its zero-shot "bend" edit."""
+    avt = _load()
+    root, _, _ = mini
     out = root / "results"
-    assert avt.main(["--study", "image", "--run", str(root / "run"), "--out-dir", str(out), "--test-views", "2",
+    assert avt.main(["--study", "image", "--run", str(short_model), "--out-dir", str(out), "--test-views", "2",
                      "--timing-passes", "2", "--quick"]) == 0
-    t2 = time.perf_counter()
-    print(f"image study smoke test: train {t1 - t0:.1f} s, study {t2 - t1:.1f} s")
-    return out, json.loads((out / "accuracy_vs_time_image_test.json").read_text()), root / "run"
+    return out, json.loads((out / "accuracy_vs_time_image_test.json").read_text()), short_model
 
 
 def test_image_study_needs_a_run(capsys):
@@ -272,16 +272,6 @@ def test_bench_presets_quick(image_run, tmp_path):
         bench.main(["--run", str(tmp_path / "missing")])
     with pytest.raises(SystemExit, match="--steps: expected at least 1, found 0"):
         bench.main(["--run", str(run_dir), "--steps", "0"])
-
-
-@pytest.fixture(scope="module")
-def short_model(mini):
-    """The run directory of a model trained for a few steps on the mini scene."""
-    from ne_jax.train.loop import train
-
-    root, scene_dir, run = mini
-    train(run, scene_dir, root / "short_model", progress=False, log=lambda s: None)
-    return root / "short_model"
 
 
 def test_compare_runs_same_and_different(short_model, tmp_path, capsys):
