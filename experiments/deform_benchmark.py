@@ -122,7 +122,8 @@ def main(argv=None) -> None:
                     rec = json.loads(cache.with_suffix(".json").read_text(encoding="utf-8"))
                     image = np.load(cache.with_suffix(".npy"))
                 else:
-                    rec, image = measure(args, runs, scene, edit, truth, v, model_of(v), finetuned)
+                    zero = runs / scene / "records" / edit / f"{v.name}-zero"  # zero-shot, measured on its own
+                    rec, image = measure(args, runs, scene, edit, truth, v, model_of(v), finetuned, zero)
                     cache.parent.mkdir(parents=True, exist_ok=True)
                     atomic_write_bytes(cache.with_suffix(".npy"), _npy_bytes(image))
                     atomic_write_json(cache.with_suffix(".json"), rec)
@@ -142,17 +143,22 @@ def _npy_bytes(a: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: TrainedModel, finetuned: dict
-            ) -> tuple[dict, np.ndarray]:
-    """One record: edit ``model`` for variant ``v``, score zero-shot, fine-tune (shared by variants
-    with the same model and IST setting through ``finetuned``) and score again."""
+def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: TrainedModel, finetuned: dict,
+            zero_cache: Path) -> tuple[dict, np.ndarray]:
+    """One record: edit ``model`` for variant ``v``, score zero-shot (or read the score back from
+    ``zero_cache``, a ``--no-finetune`` record of the same edit and variant), fine-tune (shared by
+    variants with the same model and IST setting through ``finetuned``) and score again."""
     t0 = time.perf_counter()
     edited, rep = edit_model(model, benchmark_edit(model.scene_dir, edit)[0], ist=v.ist, cfg=v.edit, scene_dir=truth,
                              label=edit)
-    zero, image = score(edited, v, truth)
-    rec = {"scene": scene, "edit": edit, "variant": v.name, "zero_shot": zero,
-           "edit_report": {k: rep[k] for k in ("moved", "deleted", "good", "filled", "identity")},
-           "zero_shot_seconds": round(time.perf_counter() - t0, 1)}
+    if zero_cache.with_suffix(".json").is_file():
+        rec = json.loads(zero_cache.with_suffix(".json").read_text(encoding="utf-8"))
+        image = np.load(zero_cache.with_suffix(".npy"))
+    else:
+        zero, image = score(edited, v, truth)
+        rec = {"scene": scene, "edit": edit, "variant": v.name, "zero_shot": zero,
+               "edit_report": {k: rep[k] for k in ("moved", "deleted", "good", "filled", "identity")},
+               "zero_shot_seconds": round(time.perf_counter() - t0, 1)}
     if not args.no_finetune:
         key = (model.run.name, v.ist, v.edit)  # Naive Plotting plots the fine-tuned model without IST
         t0 = time.perf_counter()
