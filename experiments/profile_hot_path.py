@@ -186,8 +186,9 @@ def profile_stages(repeats: int, quick: bool) -> dict:
     from ne_jax.geometry.kdtree import build_tree
     from ne_jax.render.composite import composite
     from ne_jax.render.quadrature import level_samples
-    from ne_jax.render.renderer import _values_to_interpolate, render_rays, render_rays_with_aux
+    from ne_jax.render.renderer import render_rays, render_rays_with_aux
     from ne_jax.render.shading import shade
+    from ne_jax.render.stage import values_needed
     from ne_jax.train.sampler import Batch
     from ne_jax.train.state import init_train_state
     from ne_jax.train.step import make_train_step
@@ -241,7 +242,7 @@ def profile_stages(repeats: int, quick: bool) -> dict:
         pts = sc.points
         nb, ci, j = add("candidate gather and top-k", kind, r,
                         lambda p, t_, x, n_: K._candidate_search(p, t_, x, n_, tc.knn_k, eps), pts, tree, pos, node)
-        needed = _values_to_interpolate(pts, cfg.shading.effects, aux)
+        needed = values_needed(pts, cfg.shading.effects, aux)
 
         def integ(nbw, ci, j, w, vals):
             b = jnp.arange(ci.shape[0])[:, None, None]

@@ -37,18 +37,18 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ne_jax.checks import checked
 from ne_jax.data.rays import Rays
 from ne_jax.fields import require
 from ne_jax.geometry.capacity import LostCounts
 from ne_jax.geometry.intersect import intersect
-from ne_jax.geometry.knn import interpolate, knn_neighbors
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import Views
 from ne_jax.pointcloud.neighbours import statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import at_test_time, level_samples
-from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, until_complete, values_needed
-from ne_jax.render.shading import shade
+from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, until_complete
+from ne_jax.render.stage import shade_samples
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,7 +112,6 @@ class PointOptConfig:
 # ---------------------------------------------------------------- grow
 
 
-@functools.partial(jax.jit, static_argnums=0)
 def scan_growth(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
                 min_distance: float, min_sigma: float) -> dict:
     """Per ray, the densest sample, kept when it lies far from every point (one jitted pass over
@@ -124,31 +123,42 @@ def scan_growth(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
     nearest point), and the ray's photometric error (mean squared RGB error of a render,
     ``rays.target`` holding the colour on the background) -- the candidate's priority; and what the
     scan's traversal and the render lost to the scene's capacities (``lost``, ``render_lost``:
-    :class:`~ne_jax.geometry.capacity.Lost`, ``[R]`` per field).
+    :class:`~ne_jax.geometry.capacity.Lost`, ``[R]`` per field). With ``cfg.checks`` the scan runs
+    under the runtime checks (:mod:`ne_jax.checks`) and raises on the first non-finite stage.
     """
-    tree, pts = scene.tree, scene.points
+    scan = _checked_scan(cfg) if cfg.checks else functools.partial(_scan_growth, cfg)
+    return scan(params, scene, rays, background, min_distance, min_sigma)
+
+
+def _scan(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, min_distance, min_sigma):
+    tree = scene.tree
     seg = intersect(tree, rays, cfg.tree, scene.capacities, include_grow_level=True)  # [R, M]
     level_index = (tree.depth - 1) - seg.level  # 0 = bottom rendering level, L = growing level
     t, w = level_samples(cfg.quadrature, seg.t_lo, seg.t_hi, level_index)  # [R, M, S]
     pos = rays.origin[:, None, None, :] + t[..., None] * rays.direction[:, None, None, :]
-    nb = knn_neighbors(pts, tree, pos, seg.node, cfg.tree)  # [R, M, S, K], candidates once per segment
-    values = interpolate(nb, values_needed(pts, cfg.shading.effects))
-    view = jnp.broadcast_to(rays.direction[:, None, None, :], pos.shape)
-    sigma = shade(cfg.shading, params, values["feature"], values.get("normal"), view, values.get("ist")).sigma
-    nearest = jnp.min(jnp.where(nb.valid, nb.dist, jnp.inf), axis=-1)  # [R, M, S]
+    view = jnp.broadcast_to(rays.direction[:, None, :], seg.t_lo.shape + (3,))
+    sh = shade_samples(cfg, params, scene, pos, seg.node, view)  # [R, M, S], candidates once per segment
     sample = seg.valid[..., None] & (w > 0)
-    score = jnp.where(sample, sigma, -jnp.inf).reshape(sigma.shape[0], -1)
+    score = jnp.where(sample, sh.sigma, -jnp.inf).reshape(sh.sigma.shape[0], -1)
     best = jnp.argmax(score, axis=-1)  # the ray's densest sample ...
     take = lambda a: jnp.take_along_axis(a.reshape(a.shape[0], -1, *a.shape[3:]),  # noqa: E731
                                          best.reshape((-1, 1) + (1,) * (a.ndim - 3)), axis=1)[:, 0]
-    found = (jnp.max(score, axis=-1) >= min_sigma) & (take(nearest) >= min_distance * tree.spacing)  # ... in a gap
+    found = (jnp.max(score, axis=-1) >= min_sigma) & (take(sh.nearest) >= min_distance * tree.spacing)  # ... in a gap
     rendered = render_rays(cfg, params, scene, rays, background)
     error = jnp.mean(jnp.square(rendered.rgb - rays.target[:, :3]), axis=-1)
-    out = {"xyz": take(pos), "feature": take(values["feature"]), "sigma": take(sigma), "found": found,
+    out = {"xyz": take(pos), "feature": take(sh.values["feature"]), "sigma": take(sh.sigma), "found": found,
            "error": error, "lost": seg.lost(), "render_lost": rendered.lost}
-    if "ist" in values:  # an edited model: new points take the interpolated IST
-        out["ist"] = take(values["ist"])
+    if "ist" in sh.values:  # an edited model: new points take the interpolated IST
+        out["ist"] = take(sh.values["ist"])
     return out
+
+
+_scan_growth = jax.jit(_scan, static_argnums=0)
+
+
+@functools.cache
+def _checked_scan(cfg: RenderConfig):
+    return checked(functools.partial(_scan, cfg))
 
 
 def select_growth(xyz: np.ndarray, priority: np.ndarray, cell: float, max_new: int) -> np.ndarray:

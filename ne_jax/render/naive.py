@@ -68,7 +68,8 @@ from ne_jax.geometry.points import PointState
 from ne_jax.numerics import safe_div, safe_normalize
 from ne_jax.render.composite import TAU_MAX
 from ne_jax.render.renderer import PointScene, RenderConfig, RenderOut
-from ne_jax.render.shading import background_color, shade
+from ne_jax.render.shading import background_color
+from ne_jax.render.stage import shade_own
 
 DEFAULT_SPLAT_RADIUS = 1.0
 """Footprint radius in pixels (the module docstring has the measurements it was chosen from)."""
@@ -121,15 +122,6 @@ def _project(points: PointState, camera: Camera, near, far):
     return u, v, t, safe_normalize(rel), ok
 
 
-def _shade_points(cfg: RenderConfig, params, points: PointState, view_dir):
-    """Density ``[C]``, colour ``[C, 3]`` and shading normal ``[C, 3]`` or ``None`` of every point."""
-    fx = cfg.shading.effects
-    normal = points.normal if fx.uses_point_normals else None
-    ist = points.ist if fx.uses_ist else None
-    out = shade(cfg.shading, params, points.feature, normal, view_dir, ist)
-    return out.sigma, out.rgb, out.shading_normal
-
-
 @functools.partial(jax.jit, static_argnames=("cfg", "splat_radius"))
 def _naive_plot(cfg: RenderConfig, params, points: PointState, camera: Camera, background, near, far,
                 splat_radius: float) -> RenderOut:
@@ -140,7 +132,8 @@ def _naive_plot(cfg: RenderConfig, params, points: PointState, camera: Camera, b
     k = offsets.shape[0]
 
     u, v, t, view_dir, ok = _project(points, camera, near, far)
-    sigma, rgb, shading_normal = _shade_points(cfg, params, points, view_dir)
+    sh = shade_own(cfg, params, points, view_dir)
+    sigma, rgb, shading_normal = sh.sigma, sh.rgb, sh.shading_normal
 
     # footprint entries [C, K]
     lim = float(max(h, w) + 2 * (abs(offsets).max() + 2))

@@ -46,7 +46,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import operator
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -63,11 +63,11 @@ from ne_jax.geometry.capacity import BUFFERS, Capacities, Lost, LostCounts, fit_
 from ne_jax.geometry.carry import carry_tree
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
-from ne_jax.geometry.knn import knn_integrate, knn_interpolate
 from ne_jax.geometry.points import PointState
 from ne_jax.render.composite import composite
 from ne_jax.render.quadrature import QuadratureConfig, level_samples, sample_intervals
-from ne_jax.render.shading import Effects, ShadingConfig, background_color, shade
+from ne_jax.render.shading import ShadingConfig, background_color
+from ne_jax.render.stage import shade_samples, shade_segments
 
 INTEGRATIONS: tuple[str, ...] = ("segment", "samples")
 """Values of :attr:`RenderConfig.integration`."""
@@ -206,27 +206,6 @@ class RenderOut:
     lost: Lost
 
 
-def values_needed(points: PointState, effects: Effects) -> dict:
-    """Only the per-point arrays the declared effects read."""
-    values = {"feature": points.feature}
-    if effects.uses_point_normals:
-        values["normal"] = points.normal
-    if effects.uses_ist:
-        values["ist"] = points.ist
-    return values
-
-
-def _values_to_interpolate(points: PointState, effects: Effects, aux: bool) -> dict:
-    """:func:`values_needed`, plus what the training losses read (``aux``): the confidence ``[C, 1]``
-    and the confidence-weighted normal moment ``[C, 9]``."""
-    needed = values_needed(points, effects)
-    if aux:
-        conf, n = points.confidence, points.normal
-        needed["confidence"] = conf[:, None]
-        needed["normal_moment"] = (conf[:, None, None] * n[:, :, None] * n[:, None, :]).reshape(-1, 9)
-    return needed
-
-
 @struct.dataclass
 class SegmentAux:
     """Per-segment quantities of a render, for training losses (``[R, M, ...]``, ``M`` the segment
@@ -279,13 +258,32 @@ def render_rays_with_aux(cfg: RenderConfig, params: dict, scene: PointScene, ray
     return _render(cfg, params, scene, rays, background, key, aux=True)
 
 
-def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
-            aux: bool) -> tuple[RenderOut, SegmentAux | None]:
-    tcfg = cfg.tree
-    tree = scene.tree
-    seg = intersect(tree, rays, tcfg, scene.capacities)
-    stage_check(cfg.checks, "traversal", origin=rays.origin, direction=rays.direction)
-    stage_check(cfg.checks, "traversal", where=seg.valid, t_lo=seg.t_lo, t_hi=seg.t_hi)
+class _Packed(NamedTuple):
+    """A batch's live segments packed into ``B`` slots (``B = R * M``, or the packing budget), and
+    per slot its ray and its place on it (``[B]``, ``[B, 3]``)."""
+
+    keep: jax.Array  # [R, M] the segment is rendered
+    slot: jax.Array  # [B] flat index r * M + m of the packed segment
+    live: jax.Array  # [B] the slot holds a segment
+    origin: jax.Array
+    direction: jax.Array
+    t_lo: jax.Array
+    t_hi: jax.Array
+    node: jax.Array
+    level_index: jax.Array  # 0 = bottom rendering level
+
+    def unpack(self, v: jax.Array, per_slot: int = 0) -> jax.Array:
+        """``[B, *inner, ...]`` -> ``[R, M * prod(inner), ...]`` (``per_slot`` inner axes, e.g. the
+        samples of a segment), zeros in slots without a live segment."""
+        r, m = self.keep.shape
+        target = jnp.where(self.live, self.slot, r * m)
+        full = jnp.zeros((r * m,) + v.shape[1:], v.dtype).at[target].set(v, mode="drop")
+        inner = v.shape[1:1 + per_slot]
+        return full.reshape((r, m * int(np.prod(inner))) + v.shape[1 + per_slot:])
+
+
+def _pack(scene: PointScene, rays: Rays, seg) -> _Packed:
+    """The valid segments ``seg`` (``[R, M]``) in the scene's packing budget (all slots without one)."""
     r, m = seg.valid.shape
     budget = scene.capacities.segment_budget(r)
     flat = lambda a: a.reshape((r * m,) + a.shape[2:])  # noqa: E731
@@ -298,21 +296,33 @@ def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, back
         live = jnp.arange(budget) < jnp.sum(seg.valid)
         keep = flat(jnp.zeros_like(seg.valid)).at[jnp.where(live, slot, r * m)].set(True, mode="drop").reshape(r, m)
     ray = slot // m
+    return _Packed(keep=keep, slot=slot, live=live, origin=rays.origin[ray], direction=rays.direction[ray],
+                   t_lo=flat(seg.t_lo)[slot], t_hi=flat(seg.t_hi)[slot], node=flat(seg.node)[slot],
+                   level_index=(scene.tree.depth - 1) - flat(seg.level)[slot])
+
+
+def _along(p: _Packed, t: jax.Array) -> jax.Array:
+    """Positions ``[B, S, 3]`` at distances ``t [B, S]`` along the slots' rays."""
+    return p.origin[:, None, :] + t[..., None] * p.direction[:, None, :]
+
+
+def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
+            aux: bool) -> tuple[RenderOut, SegmentAux | None]:
+    seg = intersect(scene.tree, rays, cfg.tree, scene.capacities)
+    stage_check(cfg.checks, "traversal", origin=rays.origin, direction=rays.direction)
+    stage_check(cfg.checks, "traversal", where=seg.valid, t_lo=seg.t_lo, t_hi=seg.t_hi)
+    p = _pack(scene, rays, seg)
     if cfg.integration == "samples":
-        return _render_samples(cfg, params, scene, rays, background, key, aux, seg, keep, slot, live)
-    sigma, rgb, normal, extra = _shade_segments(
-        cfg, params, scene, rays.origin[ray], rays.direction[ray], flat(seg.t_lo)[slot], flat(seg.t_hi)[slot],
-        flat(seg.node)[slot], (tree.depth - 1) - flat(seg.level)[slot], key, aux)
-
-    def unpack(v):  # packed [budget, ...] -> [R, M, ...], zeros in slots without a live segment
-        target = jnp.where(live, slot, r * m)
-        full = jnp.zeros((r * m,) + v.shape[1:], v.dtype).at[target].set(v, mode="drop")
-        return full.reshape((r, m) + v.shape[1:])
-
-    normal_full = None if normal is None else unpack(normal)
-    extra_full = None if extra is None else {k: unpack(v) for k, v in extra.items()}
-    return _composite_out(cfg, params, rays, background, seg, keep, keep, unpack(sigma), unpack(rgb),
-                          (seg.t_hi - seg.t_lo) / tree.spacing, 0.5 * (seg.t_lo + seg.t_hi), normal_full, extra_full)
+        return _render_samples(cfg, params, scene, rays, background, key, aux, seg, p)
+    t, w = level_samples(cfg.quadrature, p.t_lo, p.t_hi, p.level_index, key)  # [B, S]
+    sh = shade_segments(cfg, params, scene, _along(p, t), p.node, w, p.direction, aux)
+    normal = None if sh.shading_normal is None else p.unpack(sh.shading_normal)
+    extra = None
+    if aux:
+        extra = {"pred_normal": p.unpack(sh.pred_normal), "confidence": p.unpack(sh.values["confidence"][..., 0]),
+                 "normal_moment": p.unpack(sh.values["normal_moment"].reshape(-1, 3, 3))}
+    return _composite_out(cfg, params, rays, background, seg, p.keep, p.keep, p.unpack(sh.sigma), p.unpack(sh.rgb),
+                          (seg.t_hi - seg.t_lo) / scene.tree.spacing, 0.5 * (seg.t_lo + seg.t_hi), normal, extra)
 
 
 def _composite_out(cfg: RenderConfig, params, rays: Rays, background, seg, keep, valid, sigma, rgb, lengths, depth_t,
@@ -340,68 +350,25 @@ def _composite_out(cfg: RenderConfig, params, rays: Rays, background, seg, keep,
     return out, seg_aux
 
 
-def _shade_segments(cfg: RenderConfig, params, scene: PointScene, origin, direction, t_lo, t_hi, node,
-                    level_index, key, aux: bool = False):
-    """Density, colour and shading normal of ``[B]`` segments (rays ``origin``/``direction`` ``[B, 3]``,
-    ``level_index`` 0 = bottom rendering level): sample, interpolate, integrate, shade. With ``aux``,
-    the fourth result holds the predicted normal ``[B, 3]``, the integrated confidence ``[B]`` and
-    normal moment ``[B, 3, 3]`` (see :class:`SegmentAux`); otherwise it is ``None``."""
-    effects = cfg.shading.effects
-    t, w = level_samples(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S]
-    pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
-    needed = _values_to_interpolate(scene.points, effects, aux)
-    # Interpolation and quadrature fused (both linear): segment means straight from the candidates.
-    means = knn_integrate(scene.points, scene.tree, pos, node, w, needed, cfg.tree, cfg.exact_knn)
-    stage_check(cfg.checks, "interpolation", **{k: means.get(k) for k in ("feature", "normal", "ist")})
-    out = shade(cfg.shading, params, means["feature"], means.get("normal"), direction, means.get("ist"))
-    stage_check(cfg.checks, "shading", sigma=out.sigma, rgb=out.rgb)
-    extra = None
-    if aux:
-        extra = {"pred_normal": out.pred_normal,
-                 "confidence": means["confidence"][..., 0],
-                 "normal_moment": means["normal_moment"].reshape(-1, 3, 3)}
-    return out.sigma, out.rgb, out.shading_normal, extra
-
-
 def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
-                    aux: bool, seg, keep, slot, live) -> tuple[RenderOut, SegmentAux | None]:
+                    aux: bool, seg, p: _Packed) -> tuple[RenderOut, SegmentAux | None]:
     """The ``integration="samples"`` half of :func:`_render`, from the packed segments on: every
     sample shaded on its own and composited as its own sub-interval (module docstring)."""
-    tree = scene.tree
-    r, m = seg.valid.shape
     ns = cfg.quadrature.max_samples
-    flat = lambda a: a.reshape((r * m,) + a.shape[2:])  # noqa: E731
-    ray = slot // m
-    origin, direction = rays.origin[ray], rays.direction[ray]
-    t_lo, t_hi = flat(seg.t_lo)[slot], flat(seg.t_hi)[slot]
-    level_index = (tree.depth - 1) - flat(seg.level)[slot]
-    t, inside, s_count = sample_intervals(cfg.quadrature, t_lo, t_hi, level_index, key)  # [B, S], [B, 1]
-    pos = origin[:, None, :] + t[..., None] * direction[:, None, :]
-    effects = cfg.shading.effects
-    needed = _values_to_interpolate(scene.points, effects, aux)
-    vals, _ = knn_interpolate(scene.points, scene.tree, pos, flat(seg.node)[slot], cfg.tree, cfg.exact_knn,
-                              needed)  # [B, S, ...]
-    stage_check(cfg.checks, "interpolation", **{k: vals.get(k) for k in ("feature", "normal", "ist")})
-    view = jnp.broadcast_to(direction[:, None, :], pos.shape)
-    sh = shade(cfg.shading, params, vals["feature"], vals.get("normal"), view, vals.get("ist"))
-    stage_check(cfg.checks, "shading", sigma=sh.sigma, rgb=sh.rgb)
-    sub_len = jnp.where(inside, (t_hi - t_lo)[:, None] / tree.spacing / s_count, 0.0)  # [B, S]
-
-    def unpack(v):  # packed [B, S, ...] -> [R, M * S, ...], zeros in slots without a live segment
-        target = jnp.where(live, slot, r * m)
-        full = jnp.zeros((r * m,) + v.shape[1:], v.dtype).at[target].set(v, mode="drop")
-        return full.reshape((r, m * ns) + v.shape[2:])
-
-    ok = jnp.repeat(keep, ns, axis=1) & unpack(inside)  # [R, M * S]
+    t, inside, s_count = sample_intervals(cfg.quadrature, p.t_lo, p.t_hi, p.level_index, key)  # [B, S], [B, 1]
+    sh = shade_samples(cfg, params, scene, _along(p, t), p.node, p.direction, aux)  # [B, S]
+    sub_len = jnp.where(inside, (p.t_hi - p.t_lo)[:, None] / scene.tree.spacing / s_count, 0.0)  # [B, S]
+    unpack = functools.partial(p.unpack, per_slot=1)  # [B, S, ...] -> [R, M * S, ...]
+    ok = jnp.repeat(p.keep, ns, axis=1) & unpack(inside)  # [R, M * S]
     mask = lambda v: jnp.where(ok.reshape(ok.shape + (1,) * (v.ndim - 2)), v, 0.0)  # noqa: E731
-    normal_full = None if sh.shading_normal is None else mask(unpack(sh.shading_normal))
+    normal = None if sh.shading_normal is None else mask(unpack(sh.shading_normal))
     extra = None
     if aux:
-        moment = vals["normal_moment"].reshape(vals["normal_moment"].shape[:2] + (3, 3))
-        extra = {"pred_normal": mask(unpack(sh.pred_normal)), "confidence": mask(unpack(vals["confidence"][..., 0])),
-                 "normal_moment": mask(unpack(moment))}
-    return _composite_out(cfg, params, rays, background, seg, keep, ok, mask(unpack(sh.sigma)), unpack(sh.rgb),
-                          mask(unpack(sub_len)), unpack(t), normal_full, extra)
+        moment = sh.values["normal_moment"].reshape(t.shape + (3, 3))
+        extra = {"pred_normal": mask(unpack(sh.pred_normal)),
+                 "confidence": mask(unpack(sh.values["confidence"][..., 0])), "normal_moment": mask(unpack(moment))}
+    return _composite_out(cfg, params, rays, background, seg, p.keep, ok, mask(unpack(sh.sigma)), unpack(sh.rgb),
+                          mask(unpack(sub_len)), unpack(t), normal, extra)
 
 
 @functools.partial(jax.jit, static_argnums=0, static_argnames="mesh")

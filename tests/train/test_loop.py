@@ -223,3 +223,16 @@ def test_scan_growth_candidates_lie_in_gaps_and_are_finite(full_run):
     # the KNN candidate sets give the nearest point of the voxel's set; the global nearest may be
     # closer only for points outside the set, which a voxel's 16-point set rarely misses
     assert np.mean(nearest >= 1.0 * float(scene.tree.spacing) * 0.999) >= 0.9
+
+
+def test_scan_growth_runs_under_the_runtime_checks(full_run):
+    """With ``checks`` on, the scan runs under checkify (a plain jit refuses the stage checks) and
+    finds what it finds without them."""
+    run = mini_run()
+    pool = _pool(full_run, run)
+    rays = sample_batch(run.sampler, pool, jax.random.key(1)).rays
+    args = (full_run.state.params, full_run.scene, rays, pool.background, 1.0, 0.0)
+    plain = jax.device_get(scan_growth(run.render, *args))
+    checked_scan = jax.device_get(scan_growth(run.render.replace(checks=True), *args))
+    np.testing.assert_array_equal(checked_scan["found"], plain["found"])
+    np.testing.assert_allclose(checked_scan["xyz"], plain["xyz"], rtol=1e-5, atol=1e-6)
