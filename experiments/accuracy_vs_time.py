@@ -262,10 +262,10 @@ def orbit_rays(res: int, views: int, dtype=np.float32):
     import jax.numpy as jnp
 
     from ne_jax.data import cameras
-    from ne_jax.data.rays import Rays, pixel_centres, rays_through_pixels
+    from ne_jax.data.rays import Rays, pixel_centers, rays_through_pixels
 
     focal = 0.5 * res / math.tan(0.5 * cameras.CAMERA_ANGLE_X)
-    pix = jnp.asarray(pixel_centres(res, res), dtype)
+    pix = jnp.asarray(pixel_centers(res, res), dtype)
     parts = [rays_through_pixels(jnp.asarray(c2w, dtype), jnp.asarray(focal, dtype), jnp.asarray(focal, dtype),
                                  jnp.asarray(0.5 * res, dtype), jnp.asarray(0.5 * res, dtype), pix,
                                  cameras.NEAR, cameras.FAR)

@@ -491,13 +491,13 @@ def plot(res: dict, path: Path) -> None:
 
     targets = res["targets"]
     fig, axes = plt.subplots(1, len(targets), figsize=(6.2 * len(targets), 4.8), squeeze=False)
-    colours = {k: c for k, c in zip(KNOBS, plt.rcParams["axes.prop_cycle"].by_key()["color"] * 2)}
+    colors = {k: c for k, c in zip(KNOBS, plt.rcParams["axes.prop_cycle"].by_key()["color"] * 2)}
     for ax, t in zip(axes[0], targets):
         rows = t["rows"]
         for knob in KNOBS:
             sel = [r for r in rows if r["knob"] == knob and "same_as" not in r]
             if sel and knob != "own":
-                ax.scatter([r["ms_per_image"] for r in sel], [r["psnr"] for r in sel], s=22, color=colours[knob],
+                ax.scatter([r["ms_per_image"] for r in sel], [r["psnr"] for r in sel], s=22, color=colors[knob],
                            label=knob, alpha=0.85)
         f = [rows[i] for i in t["front"]]
         ax.step([r["ms_per_image"] for r in f], [r["psnr"] for r in f], where="post", color="k", lw=1,

@@ -46,12 +46,12 @@ def _orbit(model, n: int, size: int):
     from ne_jax.view.edits import matrix_to_quat
 
     xyz = np.asarray(model.scene.points.xyz)[np.asarray(model.scene.points.alive)]
-    centre = 0.5 * (xyz.min(0) + xyz.max(0))
+    center = 0.5 * (xyz.min(0) + xyz.max(0))
     radius = 2.2 * float(np.linalg.norm(xyz.max(0) - xyz.min(0)))
     cams = []
     for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
-        pos = centre + radius * np.array([np.cos(a), np.sin(a), 0.5])
-        fwd = (centre - pos) / np.linalg.norm(centre - pos)
+        pos = center + radius * np.array([np.cos(a), np.sin(a), 0.5])
+        fwd = (center - pos) / np.linalg.norm(center - pos)
         right = np.cross(fwd, (0, 0, 1.0))
         right /= np.linalg.norm(right)
         cams.append((matrix_to_quat(np.stack([right, np.cross(fwd, right), fwd], 1)), pos))
@@ -116,7 +116,7 @@ def _edit_100k(model, n: int, size: int) -> dict:
     region = E.Region.make("box", (lo + hi) / 2 + (0, 0, 0.25 * (hi - lo)[2]), (hi - lo) * (1.1, 1.1, 0.5))
     sel = E.select_region(edit, region)
     t1 = time.perf_counter()
-    turn = E.Transform.from_euler(E.selection_centre(edit, sel), (0.05, 0, 0), (0, 0, 30))
+    turn = E.Transform.from_euler(E.selection_center(edit, sel), (0.05, 0, 0), (0, 0, 30))
     moved = E.move_points(edit, sel, turn)
     t2 = time.perf_counter()
     edited, report = edit_model(big, moved.rows(), label="bench_view")
@@ -127,7 +127,7 @@ def _edit_100k(model, n: int, size: int) -> dict:
     t4 = time.perf_counter()
     region2 = E.Region.make("box", (lo + hi) / 2 - (0, 0, 0.25 * (hi - lo)[2]), (hi - lo) * (1.1, 1.1, 0.5))
     sel2 = E.select_region(moved, region2)
-    moved2 = E.move_points(moved, sel2, E.Transform.from_euler(E.selection_centre(moved, sel2), (0, 0.05, 0),
+    moved2 = E.move_points(moved, sel2, E.Transform.from_euler(E.selection_center(moved, sel2), (0, 0.05, 0),
                                                                (0, 0, -20)))
     edited2, _ = edit_model(big, moved2.rows(), label="bench_view")
     t5 = time.perf_counter()

@@ -215,9 +215,9 @@ def check_envmap(mi) -> None:
 
 
 def mitsuba_bsdf(material: S.Material) -> dict:
-    colour = {"type": "mesh_attribute", "name": "vertex_color"}
+    color = {"type": "mesh_attribute", "name": "vertex_color"}
     if material.ks <= 0.0 and material.reflect <= 0.0:
-        inner = {"type": "diffuse", "reflectance": colour}
+        inner = {"type": "diffuse", "reflectance": color}
     else:
         # Blinn-Phong exponent n <-> Beckmann/GGX alpha = sqrt(2 / (n + 2)); principled uses the
         # Disney parametrisation alpha = roughness^2. `specular` sets F0 = 0.08 * specular: with
@@ -225,7 +225,7 @@ def mitsuba_bsdf(material: S.Material) -> dict:
         alpha = math.sqrt(2.0 / (material.shininess + 2.0))
         inner = {
             "type": "principled",
-            "base_color": colour,
+            "base_color": color,
             "roughness": float(math.sqrt(alpha)),
             "specular": float(min(1.0, material.ks)),
             "metallic": 0.0,

@@ -48,6 +48,7 @@ def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
 MOVED = {
     "ne_jax.train.loop:RunConfig": "ne_jax.train.run:RunConfig",
     "ne_jax.train.loop:InitConfig": "ne_jax.train.run:InitConfig",
+    "ne_jax.pointcloud.optimise:PointOptConfig": "ne_jax.pointcloud.optimize:PointOptConfig",
 }
 """Config types stored under an older module path -> where they live now (read side only: a run
 directory written before a move still loads and resumes)."""

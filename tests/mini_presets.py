@@ -12,7 +12,7 @@ import dataclasses
 from ne_jax.benchmark.generate import BenchmarkPreset
 from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.kdtree import KDTreeConfig
-from ne_jax.pointcloud.optimise import PointOptConfig
+from ne_jax.pointcloud.optimize import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
 from ne_jax.train.run import InitConfig, RunConfig

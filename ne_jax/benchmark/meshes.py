@@ -282,9 +282,9 @@ def tube(path: np.ndarray, radius: float, sides: int, closed: bool) -> TriMesh:
     meshes = [TriMesh(verts, faces, np.zeros(len(faces), np.int32))]
     if not closed:
         for end, direction in ((0, -1.0), (p - 1, 1.0)):
-            centre = path[end]
-            rim = centre + radius * ring[end]
-            cap_v = np.concatenate([centre[None], rim])
+            center = path[end]
+            rim = center + radius * ring[end]
+            cap_v = np.concatenate([center[None], rim])
             k = np.arange(sides)
             fan = np.stack([np.zeros(sides, int), 1 + k, 1 + (k + 1) % sides], -1)
             if direction < 0:

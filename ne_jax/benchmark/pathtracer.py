@@ -185,13 +185,13 @@ def _longest_edge(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1))) if len(faces) else 0.0
 
 
-def _bsdf(surface: Surface, colour: dict) -> dict:
+def _bsdf(surface: Surface, color: dict) -> dict:
     if surface.kind == "diffuse":
-        inner = {"type": "diffuse", "reflectance": colour}
+        inner = {"type": "diffuse", "reflectance": color}
     elif surface.kind == "plastic":
         # principled (not roughplastic, which needs a texture's mean): a dielectric coat with Disney's
         # roughness (GGX alpha = roughness^2), F0 = 0.04 (IOR 1.5), the texture as base colour.
-        inner = {"type": "principled", "base_color": colour, "roughness": math.sqrt(surface.alpha),
+        inner = {"type": "principled", "base_color": color, "roughness": math.sqrt(surface.alpha),
                  "metallic": 0.0, "specular": 0.5}
     else:
         inner = {"type": "roughconductor", "distribution": "ggx", "alpha": surface.alpha, "material": surface.metal}

@@ -100,7 +100,7 @@ class RayCaster:
                 albedo[sel] = m.albedo(rest[sel])
                 ks[sel], shin[sel], refl[sel] = m.ks, m.shininess, m.reflect
         albedo = np.clip(albedo, 0.0, 1.0) ** GAMMA
-        colour = AMBIENT * albedo
+        color = AMBIENT * albedo
         view = -d
         lift = point + 1e-4 * n_geo
         for light in LIGHTS:
@@ -115,12 +115,12 @@ class RayCaster:
             half = view + ldir
             half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-12)
             spec = ks * np.clip(np.sum(n * half, 1), 0.0, None) ** shin
-            colour += (light.intensity * lit)[:, None] * (albedo * ndotl[:, None] + spec[:, None])
+            color += (light.intensity * lit)[:, None] * (albedo * ndotl[:, None] + spec[:, None])
         mirror = d - 2.0 * np.sum(d * n, 1, keepdims=True) * n
         if self.environment is not None:
             mirror = mirror @ self.environment  # R^T d: the direction in the unrotated environment
-        colour += refl[:, None] * sky(mirror)
-        rgb[hit] = colour
+        color += refl[:, None] * sky(mirror)
+        rgb[hit] = color
         return rgb, hit
 
     def render(self, c2w: np.ndarray, width: int, height: int, camera_angle_x: float, ss: int = 2) -> np.ndarray:
@@ -138,5 +138,5 @@ class RayCaster:
         display = display.reshape(height, width, ss * ss, 3)
         hit = hit.reshape(height, width, ss * ss)
         alpha = hit.mean(-1)
-        colour = (display * hit[..., None]).sum(2) / np.maximum(hit.sum(-1), 1)[..., None]
-        return np.concatenate([colour, alpha[..., None]], -1)
+        color = (display * hit[..., None]).sum(2) / np.maximum(hit.sum(-1), 1)[..., None]
+        return np.concatenate([color, alpha[..., None]], -1)

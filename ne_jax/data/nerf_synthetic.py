@@ -439,8 +439,8 @@ def composite(rgba, background):
 
     ``background`` is anything :func:`parse_background` accepts, or an array broadcastable to
     ``[..., 3]`` (per-pixel backgrounds). Works on numpy (host) and jax (device) arrays alike."""
-    is_colour_array = isinstance(background, np.ndarray) and background.shape == (3,)
-    if isinstance(background, (str, tuple, list)) or is_colour_array:
+    is_color_array = isinstance(background, np.ndarray) and background.shape == (3,)
+    if isinstance(background, (str, tuple, list)) or is_color_array:
         background = parse_background(background)
     rgb, a = rgba[..., :3], rgba[..., 3:4]
     return rgb * a + background * (1 - a)

@@ -33,7 +33,7 @@ def fail(path: Any, where: str | None, message: str) -> DataError:
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> samples per pixel (3 = palette: Pillow)
-_COLOUR_TYPE = {1: 0, 2: 4, 3: 2, 4: 6}  # channels -> colour type
+_COLOR_TYPE = {1: 0, 2: 4, 3: 2, 4: 6}  # channels -> colour type
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,7 +41,7 @@ class _PngInfo:
     width: int
     height: int
     bit_depth: int
-    colour_type: int
+    color_type: int
     interlace: int
     idat: bytes
     trns: bytes | None
@@ -85,10 +85,10 @@ def _png_chunks(data: bytes, path: Any) -> _PngInfo:
         raise fail(path, None, "truncated PNG: no IEND chunk (the file ends early)")
     if not idat:
         raise fail(path, None, "corrupt PNG: no IDAT (image data) chunk")
-    width, height, bit_depth, colour_type, _comp, _filt, interlace = ihdr
+    width, height, bit_depth, color_type, _comp, _filt, interlace = ihdr
     if width == 0 or height == 0:
         raise fail(path, None, f"corrupt PNG: image size {width}x{height}")
-    return _PngInfo(width, height, bit_depth, colour_type, interlace, b"".join(idat), trns)
+    return _PngInfo(width, height, bit_depth, color_type, interlace, b"".join(idat), trns)
 
 
 def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -136,18 +136,18 @@ def decode_png(data: bytes, path: Any = "<bytes>") -> np.ndarray:
 
     Returns ``[H, W, C]`` uint8 or uint16 (``C`` in 1..4; a ``tRNS`` colour key adds alpha)."""
     info = _png_chunks(data, path)
-    if info.colour_type not in _CHANNELS or info.bit_depth not in (8, 16):
+    if info.color_type not in _CHANNELS or info.bit_depth not in (8, 16):
         raise fail(
             path,
             None,
-            f"unsupported PNG: colour type {info.colour_type} with bit depth {info.bit_depth} "
+            f"unsupported PNG: colour type {info.color_type} with bit depth {info.bit_depth} "
             "(expected grey, grey+alpha, RGB or RGBA at 8 or 16 bits)",
         )
     if info.interlace != 0:
         raise fail(
             path, None, "unsupported PNG: interlaced (Adam7) 16-bit image; save it without interlacing"
         )
-    channels, nbytes = _CHANNELS[info.colour_type], info.bit_depth // 8
+    channels, nbytes = _CHANNELS[info.color_type], info.bit_depth // 8
     bpp, stride = channels * nbytes, info.width * channels * nbytes
     try:
         raw = zlib.decompress(info.idat)
@@ -181,7 +181,7 @@ def encode_png(img: np.ndarray, filter_type: int = 2, level: int = 6) -> bytes:
         bit_depth, raw = 16, np.ascontiguousarray(img.astype(">u2"))
     else:
         raise ValueError(f"PNG encoder: expected uint8 or uint16 pixels, found {img.dtype}")
-    if channels not in _COLOUR_TYPE:
+    if channels not in _COLOR_TYPE:
         raise ValueError(f"PNG encoder: expected 1..4 channels, found {channels}")
     x = raw.view(np.uint8).reshape(height, -1).astype(np.int16)
     bpp = channels * bit_depth // 8
@@ -199,7 +199,7 @@ def encode_png(img: np.ndarray, filter_type: int = 2, level: int = 6) -> bytes:
         crc = zlib.crc32(ctype + payload) & 0xFFFFFFFF
         return struct.pack(">I", len(payload)) + ctype + payload + struct.pack(">I", crc)
 
-    ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, _COLOUR_TYPE[channels], 0, 0, 0)
+    ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, _COLOR_TYPE[channels], 0, 0, 0)
     return (
         _PNG_SIGNATURE
         + chunk(b"IHDR", ihdr)

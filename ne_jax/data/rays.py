@@ -101,7 +101,7 @@ def pixel_rays(camera: Camera, pixels: jax.Array, near: float, far: float) -> Ra
     return rays_through_pixels(camera.c2w, camera.fx, camera.fy, camera.cx, camera.cy, pixels, near, far)
 
 
-def pixel_centres(width: int, height: int) -> np.ndarray:
+def pixel_centers(width: int, height: int) -> np.ndarray:
     """``[H * W, 2]`` pixel centres ``(i + 0.5, j + 0.5)`` in row-major order (row 0 first)."""
     j, i = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
     return np.stack([i.ravel() + 0.5, j.ravel() + 0.5], axis=-1).astype(np.float32)
@@ -109,4 +109,4 @@ def pixel_centres(width: int, height: int) -> np.ndarray:
 
 def camera_rays(camera: Camera, near: float, far: float) -> Rays:
     """All ``H * W`` pixel-centre rays of ``camera`` in row-major order."""
-    return pixel_rays(camera, jnp.asarray(pixel_centres(camera.width, camera.height)), near, far)
+    return pixel_rays(camera, jnp.asarray(pixel_centers(camera.width, camera.height)), near, far)

@@ -173,16 +173,16 @@ def orbit_cameras_for(split_or_camera: SceneSplit | Camera, num_frames: int = 12
     distance for a camera)."""
     if isinstance(split_or_camera, SceneSplit):
         base = split_or_camera.camera(0)
-        centres = np.asarray(split_or_camera.c2w, np.float64)[:, :3, 3]
+        centers = np.asarray(split_or_camera.c2w, np.float64)[:, :3, 3]
     elif isinstance(split_or_camera, Camera):
         base = split_or_camera
-        centres = np.asarray(base.c2w, np.float64)[None, :3, 3]
+        centers = np.asarray(base.c2w, np.float64)[None, :3, 3]
     else:
         raise TypeError(f"orbit_cameras_for: expected a SceneSplit or a Camera, found {type(split_or_camera).__name__}")
     if isinstance(num_frames, bool) or not isinstance(num_frames, (int, np.integer)) or num_frames < 1:
         raise ValueError(f"orbit_cameras_for: num_frames must be a positive integer, found {num_frames!r}")
     if radius is None:
-        radius = float(np.mean(np.linalg.norm(centres, axis=-1)))
+        radius = float(np.mean(np.linalg.norm(centers, axis=-1)))
     if not (np.isfinite(radius) and radius > 0):
         raise ValueError(f"orbit_cameras_for: radius must be a positive distance, found {radius!r}")
     c2ws = orbit_cameras(int(num_frames), elevation_deg)

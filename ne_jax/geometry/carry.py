@@ -252,13 +252,13 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     if redo.any():
         idx = np.flatnonzero(alive)
         kd = cKDTree(new[idx])
-        centre = 0.5 * (lo_all[first + rows[redo]] + hi_all[first + rows[redo]])
+        center = 0.5 * (lo_all[first + rows[redo]] + hi_all[first + rows[redo]])
         frame = framed[sub_of[redo]]
         j = sub_of[redo]
-        centre = np.where(frame[:, None],  # framed boxes: their centre in the world
-                          scale[j, None] * np.einsum("nab,nb->na", rot[j], centre) + shift[j], centre)
+        center = np.where(frame[:, None],  # framed boxes: their centre in the world
+                          scale[j, None] * np.einsum("nab,nb->na", rot[j], center) + shift[j], center)
         k = min(kc, idx.size)
-        _, near = kd.query(centre, k=k, workers=-1)
+        _, near = kd.query(center, k=k, workers=-1)
         near = idx[np.reshape(near, (-1, k))]
         cand_new[redo] = np.concatenate([near, np.full((near.shape[0], kc - k), cap)], axis=1)
 

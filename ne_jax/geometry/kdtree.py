@@ -457,7 +457,7 @@ def _superset_widths(kc: int, levels: int) -> list[int]:
     return [max(kc, int(round(v * kc))) for v in grow[::-1]]
 
 
-def _candidate_sets(xo, kd, centre, nonempty, first_level, depth, kc, out_index, cap):
+def _candidate_sets(xo, kd, center, nonempty, first_level, depth, kc, out_index, cap):
     """Candidate sets of the levels ``first_level .. depth-1`` (rows in heap order from the first
     node of ``first_level``): the ``kc`` points of ``xo`` nearest each ``centre``, nearest first,
     mapped through ``out_index`` (``[n + 1]``, entry ``n`` = the sentinel), and the distance of the
@@ -480,7 +480,7 @@ def _candidate_sets(xo, kd, centre, nonempty, first_level, depth, kc, out_index,
     is correct)."""
     n = xo.shape[0]
     widths = _superset_widths(kc, depth - first_level)
-    total = centre.shape[0]
+    total = center.shape[0]
     cand = np.full((total, kc), cap, np.int32)
     radius = np.zeros(total, np.float64)
     kth = min(kc, n) - 1  # the farthest candidate that exists
@@ -505,14 +505,14 @@ def _candidate_sets(xo, kd, centre, nonempty, first_level, depth, kc, out_index,
         rows = b0 + np.flatnonzero(nonempty[b0:b1])  # growing-level rows holding points
         if rows.size == 0:
             return
-        gd, gi = query(centre[rows], widths[0])
+        gd, gi = query(center[rows], widths[0])
         cand[rows] = out_index[gi[:, :kc]]
         radius[rows] = gd[:, kth]
         for j0 in range(0, rows.size, _CASCADE_CHUNK):
             j1 = min(j0 + _CASCADE_CHUNK, rows.size)
             # State per level: the non-empty nodes' local indices (within the level) and supersets.
             loc_idx, sup, rad = rows[j0:j1], gi[j0:j1], gd[j0:j1, -1]
-            cp = centre[loc_idx]
+            cp = center[loc_idx]
             for s in range(1, depth - first_level):
                 w, wp = widths[s], sup.shape[1]
                 npar = sup.shape[0]
@@ -520,7 +520,7 @@ def _candidate_sets(xo, kd, centre, nonempty, first_level, depth, kc, out_index,
                 kids = (2 * loc_idx[:, None] + np.arange(2)).reshape(-1)
                 full = nonempty[r0 + kids]
                 if full.all():  # both children of every parent: siblings share the gathers
-                    c = centre[r0 + kids]
+                    c = center[r0 + kids]
                     c3 = c.reshape(npar, 2, 3)
                     d2, t = np.empty((npar, 2, wp)), np.empty((npar, 2, wp))
                     for a in range(3):  # (dx² + dy²) + dz², as scipy sums
@@ -537,7 +537,7 @@ def _candidate_sets(xo, kd, centre, nonempty, first_level, depth, kc, out_index,
                 else:
                     pi = np.repeat(np.arange(npar), 2)[full]
                     kids = kids[full]
-                    c = centre[r0 + kids]
+                    c = center[r0 + kids]
                     m = kids.size
                     psup = sup[pi]
                     d2 = np.zeros((m, wp))
@@ -635,10 +635,10 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     kc = cfg.num_candidates
     first = 2 ** (depth - cfg.num_render_levels - 1) - 1
     last = 2**depth - 1  # exclusive: the leaves have no candidate sets
-    centre = 0.5 * (lo_all[first:last].astype(np.float64) + hi_all[first:last].astype(np.float64))
+    center = 0.5 * (lo_all[first:last].astype(np.float64) + hi_all[first:last].astype(np.float64))
     out_index = np.append(idx[slot_pts], cap).astype(np.int32)
     cand, radius = _candidate_sets(
-        kd.data, kd, centre, count_all[first:last] > 0, depth - cfg.num_render_levels - 1, depth, kc, out_index, cap
+        kd.data, kd, center, count_all[first:last] > 0, depth - cfg.num_render_levels - 1, depth, kc, out_index, cap
     )
     # Validity at the rendering levels: the released code's "too spread out" rule.
     r0 = 2 ** (depth - cfg.num_render_levels) - 1

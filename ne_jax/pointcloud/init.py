@@ -307,7 +307,7 @@ def _check_cfg(cfg: CarveConfig) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-_NEIGHBOURS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+_NEIGHBORS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
 
 
 def carve_occupancy(cfg: CarveConfig, views: Views) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -348,7 +348,7 @@ def shell_voxels(occupied: np.ndarray) -> np.ndarray:
     pad = np.pad(occupied, 1, constant_values=False)
     interior = occupied.copy()
     r0, r1, r2 = occupied.shape
-    for d in _NEIGHBOURS:
+    for d in _NEIGHBORS:
         interior &= pad[1 + d[0]: 1 + d[0] + r0, 1 + d[1]: 1 + d[1] + r1, 1 + d[2]: 1 + d[2] + r2]
     return np.argwhere(occupied & ~interior)
 
@@ -358,7 +358,7 @@ def _outward(occupied: np.ndarray, idx: np.ndarray) -> np.ndarray:
     6-neighbours (zero when they cancel)."""
     pad = np.pad(occupied, 1, constant_values=False)
     out = np.zeros(idx.shape, np.float64)
-    for d in _NEIGHBOURS:
+    for d in _NEIGHBORS:
         nb = idx + 1 + d
         empty = ~pad[nb[:, 0], nb[:, 1], nb[:, 2]]
         out += empty[:, None] * d
@@ -396,23 +396,23 @@ def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray,
     removed = []
     for _ in range(int(cfg.photo_iters)):
         shell = shell_voxels(occupied)
-        centres = lo + (shell + 0.5) * size
-        vis = visibility(views, centres, float(np.max(size)), tolerance=1.5)
+        centers = lo + (shell + 0.5) * size
+        vis = visibility(views, centers, float(np.max(size)), tolerance=1.5)
         # sample where the surface is: on the silhouette hull where the voxel touches it
-        at, _ = _snap(views, centres, _outward(occupied, shell) * size, cfg.alpha_threshold, 6)
-        colour = np.full((views.num_views, len(shell), 3), np.nan, np.float32)
+        at, _ = _snap(views, centers, _outward(occupied, shell) * size, cfg.alpha_threshold, 6)
+        color = np.full((views.num_views, len(shell), 3), np.nan, np.float32)
         for k in range(views.num_views):
             sel = np.flatnonzero(vis[k])
             if sel.size:
                 u, v, _ = views.project(k, at[sel])
                 a = views.alpha[k]
                 premultiplied = _bilinear(views.rgb[k] * a[..., None], u, v)
-                colour[k, sel] = premultiplied / np.maximum(_bilinear(a, u, v), 1e-6)[:, None]
+                color[k, sel] = premultiplied / np.maximum(_bilinear(a, u, v), 1e-6)[:, None]
         count = vis.sum(0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: voxels nobody sees
-            median = np.nanmedian(colour, axis=0)
-        agree = (np.abs(colour - median) <= cfg.photo_tolerance).all(-1) & vis
+            median = np.nanmedian(color, axis=0)
+        agree = (np.abs(color - median) <= cfg.photo_tolerance).all(-1) & vis
         frac = agree.sum(0) / np.maximum(count, 1)
         bad = (count >= cfg.photo_min_views) & (frac < cfg.photo_agree)
         removed.append(int(bad.sum()))

@@ -2,7 +2,7 @@
 
 Estimation: Open3D ``estimate_normals`` (PCA of the neighbourhood) with a hybrid KD-tree search,
 radius ``cfg.radius_factor`` times the mean nearest-neighbour spacing, at most ``cfg.max_nn``
-neighbours (:func:`~ne_jax.pointcloud.neighbours.pca_normals`: the same on scipy where Open3D
+neighbours (:func:`~ne_jax.pointcloud.neighbors.pca_normals`: the same on scipy where Open3D
 cannot be imported). Re-run after every change of the cloud (growing, pruning, editing).
 
 Orientation (``cfg.orient``) — PCA gives an axis, not a sign:
@@ -54,7 +54,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ne_jax.pointcloud.init import Views, visibility
-from ne_jax.pointcloud.neighbours import open3d_module, pca_normals
+from ne_jax.pointcloud.neighbors import open3d_module, pca_normals
 
 ORIENTATIONS = ("visibility", "visibility_votes", "nearest_camera", "tangent_plane", "none")
 
@@ -116,13 +116,13 @@ def _centers(cameras) -> np.ndarray | None:
 def _degenerate_normals(xyz: np.ndarray) -> np.ndarray | None:
     """Normals for clouds without a plane (< 3 distinct points or collinear), else ``None``."""
     uniq = np.unique(xyz, axis=0)
-    centred = uniq - uniq.mean(0)
-    s = np.linalg.svd(centred, compute_uv=False) if len(uniq) > 1 else np.zeros(1)
+    centered = uniq - uniq.mean(0)
+    s = np.linalg.svd(centered, compute_uv=False) if len(uniq) > 1 else np.zeros(1)
     scale = max(float(s[0]), 1e-300)
     if len(uniq) >= 3 and len(s) >= 2 and s[1] > 1e-9 * scale:
         return None
     if len(uniq) > 1:
-        axis = np.linalg.svd(centred)[2][0]
+        axis = np.linalg.svd(centered)[2][0]
     else:
         axis = np.array([0.0, 0.0, 1.0])
     helper = np.eye(3)[np.argmin(np.abs(axis))]

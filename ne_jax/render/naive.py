@@ -142,8 +142,8 @@ def _naive_plot(cfg: RenderConfig, params, points: PointState, camera: Camera, b
     j = jnp.floor(lax.stop_gradient(vc)).astype(jnp.int32)[:, None] + offsets[:, 1]
     du = (i.astype(dtype) + 0.5) - lax.stop_gradient(u)[:, None]
     dv = (j.astype(dtype) + 0.5) - lax.stop_gradient(v)[:, None]
-    centre = jnp.asarray((offsets[:, 0] == 0) & (offsets[:, 1] == 0))
-    inside_disc = (du * du + dv * dv <= splat_radius**2) | centre
+    center = jnp.asarray((offsets[:, 0] == 0) & (offsets[:, 1] == 0))
+    inside_disc = (du * du + dv * dv <= splat_radius**2) | center
     keep = ok[:, None] & inside_disc & (i >= 0) & (i < w) & (j >= 0) & (j < h)
     pixel = jnp.where(keep, j * w + i, npix).reshape(-1)  # [E], sentinel npix
     point = jnp.repeat(jnp.arange(points.capacity, dtype=jnp.int32), k)  # [E]

@@ -43,7 +43,7 @@ from ne_jax.pointcloud.init import (
     load_ply_cloud,
 )
 from ne_jax.pointcloud.normals import estimate_normals
-from ne_jax.pointcloud.optimise import optimise_points
+from ne_jax.pointcloud.optimize import optimize_points
 from ne_jax.render.renderer import PointScene
 from ne_jax.train.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, save_checkpoint
 from ne_jax.train.model import (
@@ -282,12 +282,12 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
             record["capacities"] = dataclasses.asdict(scene.capacities)
             # a batch lost segments to the packing budget: grow it (the traversal's losses are counted)
             scene = scene.grown(LostCounts(**record["lost"]), TRAINING_GROWS) or scene
-            if run.optimises_points_after(epoch):
+            if run.optimizes_points_after(epoch):
                 t1 = time.perf_counter()
                 trained = state.scene(scene)
                 rays = sample_batch(sampler.replace(batch_size=run.points.grow_rays), pool,
                                     jax.random.fold_in(k_rounds, epoch)).rays
-                new_points, report = optimise_points(run.points, render, state.params, trained, rays,
+                new_points, report = optimize_points(run.points, render, state.params, trained, rays,
                                                      pool.background, views, run.normals)
                 reset = _changed_slots(trained.points, new_points)
                 state = state.with_points(new_points, reset)

@@ -14,7 +14,7 @@ from ne_jax.pointcloud.init import (
     CarveConfig,
 )
 from ne_jax.pointcloud.normals import NormalConfig
-from ne_jax.pointcloud.optimise import PointOptConfig
+from ne_jax.pointcloud.optimize import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
 from ne_jax.train.sampler import SamplerConfig
@@ -118,7 +118,7 @@ class RunConfig:
         """Whether the learning-rate schedule decays over exactly the run's :attr:`total_steps`."""
         return int(self.train.total_steps) == self.total_steps
 
-    def optimises_points_after(self, epoch: int) -> bool:
+    def optimizes_points_after(self, epoch: int) -> bool:
         """Whether a point-cloud round follows epoch ``epoch`` (1-based); never after the last."""
         a, b = self.point_rounds
         return a <= epoch <= b and epoch < self.epochs

@@ -264,9 +264,9 @@ def select_screen_rect(edit: ViewEdit, c2w_cv, fov_y: float, aspect: float, scre
     return np.flatnonzero(inside).astype(np.int64)
 
 
-def selection_centre(edit: ViewEdit, indices) -> np.ndarray:
+def selection_center(edit: ViewEdit, indices) -> np.ndarray:
     """``[3]`` float64 centre of the selected points' bounding box (the gizmo's pivot)."""
-    idx = _check_selection(edit, indices, "selection_centre")
+    idx = _check_selection(edit, indices, "selection_center")
     xyz = edit.xyz[idx].astype(np.float64)
     return 0.5 * (xyz.min(0) + xyz.max(0))
 
@@ -334,4 +334,4 @@ def save_view_edit(model, edit: ViewEdit, out_dir: str | os.PathLike, *, ist: bo
 
 __all__ = ["EDIT_PLY", "Region", "SelectionError", "Transform", "ViewEdit", "delete_points", "euler_deg_to_matrix",
            "matrix_to_euler_deg", "matrix_to_quat", "move_points", "quat_to_matrix", "save_view_edit",
-           "select_region", "select_screen_rect", "selection_centre", "write_edit_ply"]
+           "select_region", "select_screen_rect", "selection_center", "write_edit_ply"]

@@ -104,7 +104,7 @@ class Viewer:
         self.status = ""
 
         alive = np.asarray(self._points.alive)
-        self._centre, self._extent = _bbox(np.asarray(self._points.xyz)[alive])
+        self._center, self._extent = _bbox(np.asarray(self._points.xyz)[alive])
         self._colors = self._point_colors()
         self._gizmo_guard = False
         self._move_pivot = np.zeros(3)
@@ -259,13 +259,13 @@ class Viewer:
         if self._train is not None:
             c2w = np.asarray(self._train.c2w[0], np.float64)
             cam.position = tuple(c2w[:3, 3])
-            cam.look_at = tuple(self._centre)
+            cam.look_at = tuple(self._center)
             h = self._train.height
             fy = float(self._train.camera(0).fy)
             cam.fov = float(2 * np.arctan(0.5 * h / fy))
         else:
-            cam.position = tuple(self._centre + np.array([1.0, -1.0, 0.6]) * self._extent)
-            cam.look_at = tuple(self._centre)
+            cam.position = tuple(self._center + np.array([1.0, -1.0, 0.6]) * self._extent)
+            cam.look_at = tuple(self._center)
         cam.up = (0.0, 0.0, 1.0)
 
     def _warm_up(self) -> None:
@@ -276,7 +276,7 @@ class Viewer:
 
         try:
             edited, _ = edit_model(self.model, self.edit.rows(), ist=True, label="warm-up")
-            below = self._centre - np.array([0.0, 0.0, 3.0 * self._extent])  # looking up (+z) at the centre
+            below = self._center - np.array([0.0, 0.0, 3.0 * self._extent])  # looking up (+z) at the centre
             with self._render_lock:
                 render_frame(edited, camera_from_viewer((1.0, 0.0, 0.0, 0.0), below, 0.7, 8, 8))
         except Exception:  # the viewer works without it; the first edit then compiles
@@ -303,10 +303,10 @@ class Viewer:
                 self._frustums.append(sc.add_camera_frustum(
                     f"/cameras/{i:03d}", fov, cam.width / cam.height, scale=0.04 * self._extent,
                     wxyz=E.matrix_to_quat(r_cv), position=pos, color=(40, 90, 200), visible=False))
-        self._region_ctl = sc.add_transform_controls("/region", scale=0.3 * self._extent, position=tuple(self._centre),
+        self._region_ctl = sc.add_transform_controls("/region", scale=0.3 * self._extent, position=tuple(self._center),
                                                      visible=False)
         self._region_shape = None
-        self._move_ctl = sc.add_transform_controls("/move", scale=0.3 * self._extent, position=tuple(self._centre),
+        self._move_ctl = sc.add_transform_controls("/move", scale=0.3 * self._extent, position=tuple(self._center),
                                                    visible=False)
         self._move_ctl.on_update(self._on_move_gizmo)
         self._region_ctl.on_update(lambda _: None)
@@ -391,7 +391,7 @@ class Viewer:
 
     def _reset_transform(self) -> None:
         with self._lock:
-            self._move_pivot = E.selection_centre(self.edit, self.selection) if self.selection.size else self._centre
+            self._move_pivot = E.selection_center(self.edit, self.selection) if self.selection.size else self._center
         self._gizmo_guard = True
         try:
             self._gui_move.value = (0.0, 0.0, 0.0)

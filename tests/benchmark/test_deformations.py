@@ -18,7 +18,7 @@ def test_bend_zero_angle_is_identity(points):
     np.testing.assert_array_equal(np.asarray(out), points)
 
 
-def test_bend_maps_centre_line_to_arc():
+def test_bend_maps_center_line_to_arc():
     u = jnp.linspace(-1, 1, 201)
     line = jnp.stack([jnp.zeros_like(u), jnp.zeros_like(u), u], 1)
     angle, length = np.deg2rad(90.0), 2.0

@@ -42,7 +42,7 @@ def test_render_is_bit_for_bit_repeatable():
     assert 0.0 < a[..., 3].mean() < 1.0 and np.all((a >= 0) & (a <= 1))
 
 
-def _colour_of_top_point(caster, eye):
+def _color_of_top_point(caster, eye):
     target = np.array([[0.0, 0.0, 0.8]])
     d = target - eye
     d /= np.linalg.norm(d)
@@ -55,8 +55,8 @@ def _colour_of_top_point(caster, eye):
 def test_view_dependence_only_for_glossy_materials(glossy):
     mat = S.Material(S.solid((0.6, 0.2, 0.2)), ks=0.8 if glossy else 0.0, shininess=40, reflect=0.3 if glossy else 0.0)
     caster = one_sphere(mat)
-    a = _colour_of_top_point(caster, np.array([0.0, 0.0, 4.0]))
-    b = _colour_of_top_point(caster, np.array([2.5, -2.0, 2.0]))
+    a = _color_of_top_point(caster, np.array([0.0, 0.0, 4.0]))
+    b = _color_of_top_point(caster, np.array([2.5, -2.0, 2.0]))
     if glossy:
         assert np.abs(a - b).max() > 0.05
     else:

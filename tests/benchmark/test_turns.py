@@ -99,7 +99,7 @@ def test_fixed_environment_turn_by_zero_degrees_is_the_original():
     np.testing.assert_allclose(b, a, atol=1e-5)  # vertices rounded to float32 by the edit: normals move by ~1e-7
 
 
-def test_co_moving_and_fixed_turns_differ_in_colour_not_in_silhouette(glossy_root):
+def test_co_moving_and_fixed_turns_differ_in_color_not_in_silhouette(glossy_root):
     base = glossy_root / "glossy" / "edits"
     co, fixed = (load_split(base / t, "train").images for t in TURNS)
     assert np.abs(co[..., 3] - fixed[..., 3]).max() <= 1 / 255  # same geometry from the same cameras

@@ -31,7 +31,7 @@ def test_constant_image_stays_constant(factor):
     np.testing.assert_allclose(out, np.broadcast_to(img[0, 0, 0], out.shape), atol=1e-6)
 
 
-def test_colour_is_alpha_weighted_no_dark_fringe():
+def test_color_is_alpha_weighted_no_dark_fringe():
     img = np.zeros((2, 2, 4), np.float32)
     img[0, 0] = [1.0, 0.0, 0.0, 1.0]  # one opaque red pixel
     img[0, 1] = [0.0, 0.0, 1.0, 0.0]  # transparent pixels carry arbitrary colour
@@ -109,7 +109,7 @@ def test_parse_background_accepts(value, expected):
 @pytest.mark.parametrize(
     "value, match",
     [
-        ("grey", "found 1 component"),
+        ("gray", "found 1 component"),
         ("1,2", "found 2 component"),
         ("a,b,c", "three numbers"),
         ("256,0,0", "0-255"),

@@ -202,11 +202,11 @@ def test_read_image_of_pillow_written_pngs(tmp_path):
     rgba = rng.integers(0, 256, (9, 11, 4)).astype(np.uint8)
     Image.fromarray(rgba, "RGBA").save(tmp_path / "rgba.png", optimize=True)  # adaptive filters
     np.testing.assert_array_equal(read_image(tmp_path / "rgba.png"), rgba / np.float32(255))
-    grey = rng.integers(0, 256, (9, 11)).astype(np.uint8)
-    Image.fromarray(grey, "L").save(tmp_path / "grey.png")
-    out = read_image(tmp_path / "grey.png")
+    gray = rng.integers(0, 256, (9, 11)).astype(np.uint8)
+    Image.fromarray(gray, "L").save(tmp_path / "gray.png")
+    out = read_image(tmp_path / "gray.png")
     for c in range(3):
-        np.testing.assert_array_equal(out[..., c], grey / np.float32(255))
+        np.testing.assert_array_equal(out[..., c], gray / np.float32(255))
     np.testing.assert_array_equal(out[..., 3], 1.0)
     # palette with a transparent entry
     pal = Image.fromarray(rng.integers(0, 4, (5, 6)).astype(np.uint8), "P")
@@ -219,7 +219,7 @@ def test_read_image_of_pillow_written_pngs(tmp_path):
     np.testing.assert_array_equal(out[idx == 1][:, :3], np.tile([0.0, 1.0, 0.0], ((idx == 1).sum(), 1)))
 
 
-def test_sixteen_bit_colour_key_transparency(tmp_path):
+def test_sixteen_bit_color_key_transparency(tmp_path):
     img = np.array([[[1000, 2000, 3000], [5, 6, 7]]], np.uint16)
     data = bytearray(png.encode_png(img))
     trns = np.array([1000, 2000, 3000], ">u2").tobytes()

@@ -77,7 +77,7 @@ def test_background_target_is_composited_and_opaque(split):
     np.testing.assert_allclose(on_white[0, :3], straight[0, :3], atol=1e-6)
 
 
-def test_downscaled_camera_looks_through_block_centres(tmp_path):
+def test_downscaled_camera_looks_through_block_centers(tmp_path):
     rng = np.random.default_rng(0)
     c2w = ROT_Y90[None]
     write_split(tmp_path, "train", rng.random((1, 6, 8, 4)), c2w, 0.9)

@@ -49,7 +49,7 @@ def test_distributed_flags_are_parsed_and_checked():
         initialize_distributed("localhost:1", 2, 2)
 
 
-def test_one_process_distributed_run_initialises_jax(tmp_path):
+def test_one_process_distributed_run_initializes_jax(tmp_path):
     """``ne-jax --coordinator ... --num-processes 1 --process-id 0`` starts jax.distributed (a real
     coordination service on localhost) before the command runs."""
     code = ("import sys, jax; from ne_jax.cli import main; "

@@ -17,7 +17,7 @@ from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.targets import EditError
 from ne_jax.eval import evaluate_model
-from ne_jax.pointcloud.optimise import PointOptConfig
+from ne_jax.pointcloud.optimize import PointOptConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.train import SamplerConfig, TrainConfig
 from ne_jax.train.loop import train

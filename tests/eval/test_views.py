@@ -109,10 +109,10 @@ def test_evaluate_split_uses_the_users_background(world):
 # ------------------------------------------------------------------------------------ LPIPS
 
 
-def _flat_image_fn(colour):
+def _flat_image_fn(color):
     """An ``image_fn`` that "renders" every camera as one flat colour (no renderer, no compilation)."""
     def image_fn(cfg, params, scene, camera, background, near, far):
-        rgb = jnp.broadcast_to(jnp.asarray(colour, jnp.float32), (camera.height, camera.width, 3))
+        rgb = jnp.broadcast_to(jnp.asarray(color, jnp.float32), (camera.height, camera.width, 3))
         return types.SimpleNamespace(rgb=rgb, lost=Lost.none((camera.height, camera.width)))
     return image_fn
 

@@ -62,7 +62,7 @@ def hard_rays(tree, xyz, alive, seed=0, n_random=24, n_boxes=6):
     valid = np.asarray(tree.valid)
     pts = np.asarray(xyz)[np.asarray(alive)].astype(np.float64)
     ext = float(np.max(pts.max(0) - pts.min(0))) + float(tree.spacing) * 10
-    centre = pts.mean(0)
+    center = pts.mean(0)
     r0 = 2 ** tree.render_levels[0] - 1
     boxes = [g for g in range(r0, 2**tree.depth - 1) if valid[g]]
     boxes = [boxes[i] for i in rng.choice(len(boxes), min(n_boxes, len(boxes)), replace=False)]
@@ -94,7 +94,7 @@ def hard_rays(tree, xyz, alive, seed=0, n_random=24, n_boxes=6):
             o.append(c.astype(np.float64))
             d.append(v / np.linalg.norm(v))
     for v in axes_dirs:  # missing everything: pointing away from the cloud
-        o.append(centre - v * 3 * ext)
+        o.append(center - v * 3 * ext)
         d.append(-v)
     for _ in range(n_random):
         tgt = pts[rng.integers(len(pts))] + rng.normal(size=3) * float(tree.spacing)

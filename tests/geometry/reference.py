@@ -360,7 +360,7 @@ def _ref_superset_widths(kc: int, levels: int) -> list[int]:
     return [max(kc, int(round(v * kc))) for v in grow[::-1]]
 
 
-def _ref_candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
+def _ref_candidate_sets(xo, kd, center, first_level, depth, kc, out_index):
     """Candidate sets of the levels ``first_level .. depth-1`` (rows in heap order from the first
     node of ``first_level``): the ``kc`` points of ``xo`` nearest each ``centre``, nearest first,
     mapped through ``out_index`` (``[n + 1]``, entry ``n`` = the sentinel), and the distance of the
@@ -381,7 +381,7 @@ def _ref_candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
     ordered by that position (ties: any order is correct)."""
     n = xo.shape[0]
     widths = _ref_superset_widths(kc, depth - first_level)
-    total = centre.shape[0]
+    total = center.shape[0]
     cand = np.empty((total, kc), np.int32)
     radius = np.empty(total, np.float64)
     kth = min(kc, n) - 1  # the farthest candidate that exists
@@ -403,17 +403,17 @@ def _ref_candidate_sets(xo, kd, centre, first_level, depth, kc, out_index):
 
     def run_block(b0):
         b1 = min(b0 + _ref_GROW_BLOCK, ngrow)
-        gd, gi = query(centre[b0:b1], widths[0])
+        gd, gi = query(center[b0:b1], widths[0])
         cand[b0:b1] = out_index[gi[:, :kc]]
         radius[b0:b1] = gd[:, kth]
         for c0 in range(b0, b1, _ref_CASCADE_CHUNK):
             c1 = min(c0 + _ref_CASCADE_CHUNK, b1)
-            sup, rad, cp = gi[c0 - b0 : c1 - b0], gd[c0 - b0 : c1 - b0, -1], centre[c0:c1]
+            sup, rad, cp = gi[c0 - b0 : c1 - b0], gd[c0 - b0 : c1 - b0, -1], center[c0:c1]
             for s in range(1, depth - first_level):
                 w, wp = widths[s], sup.shape[1]
                 npar, m = sup.shape[0], 2 * sup.shape[0]
                 r0 = 2 ** (first_level + s) - ngrow + (c0 << s)
-                c = centre[r0 : r0 + m]
+                c = center[r0 : r0 + m]
                 c3 = c.reshape(npar, 2, 3)
                 d2 = np.zeros((npar, 2, wp))
                 for a in range(3):
@@ -509,10 +509,10 @@ def build_tree_reference(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings
     kc = cfg.num_candidates
     first = 2 ** (depth - cfg.num_render_levels - 1) - 1
     last = 2**depth - 1  # exclusive: the leaves have no candidate sets
-    centre = 0.5 * (lo_all[first:last].astype(np.float64) + hi_all[first:last].astype(np.float64))
+    center = 0.5 * (lo_all[first:last].astype(np.float64) + hi_all[first:last].astype(np.float64))
     out_index = np.append(idx[slot_pts], cap).astype(np.int32)
     cand, radius = _ref_candidate_sets(
-        kd.data, kd, centre, depth - cfg.num_render_levels - 1, depth, kc, out_index
+        kd.data, kd, center, depth - cfg.num_render_levels - 1, depth, kc, out_index
     )
     # Validity at the rendering levels: the released code's "too spread out" rule.
     r0 = 2 ** (depth - cfg.num_render_levels) - 1

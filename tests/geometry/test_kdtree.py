@@ -145,11 +145,11 @@ def test_candidates_exact_on_every_node(cfg):
         assert 0 < full.sum() < full.size / 2  # the case this test is for: mostly empty deep nodes
     np.testing.assert_array_equal(cand[~full], cap)
     cand, nodes = cand[full], nodes[full]
-    centre = 0.5 * (lo + hi)[nodes]
+    center = 0.5 * (lo + hi)[nodes]
     pts = np.flatnonzero(alive)
-    d_ref, _ = cKDTree(xyz[pts].astype(np.float64)).query(centre, k=kc)
+    d_ref, _ = cKDTree(xyz[pts].astype(np.float64)).query(center, k=kc)
     x = np.concatenate([xyz.astype(np.float64), np.full((1, 3), np.inf)])
-    got = np.sqrt(sum((x[cand][..., a] - centre[:, None, a]) ** 2 for a in range(3)))
+    got = np.sqrt(sum((x[cand][..., a] - center[:, None, a]) ** 2 for a in range(3)))
     np.testing.assert_array_equal(got, d_ref)
     assert np.all(alive[cand[cand < cap]])
     real = np.where(cand < cap, cand, -1 - np.arange(kc))  # distinct sentinels

@@ -26,8 +26,8 @@ def _setup(name, seed=0, b=40, s=6):
     tree = build_tree(np.asarray(state.xyz), alive, cfg)
     first = tree.first_candidate_node
     node = jnp.asarray(rng.integers(first, first + tree.candidates.shape[0], b), jnp.int32)
-    centre = 0.5 * (tree.lo[node] + tree.hi[node])
-    pts = centre[:, None, :] + jnp.asarray(rng.normal(scale=0.05, size=(b, s, 3)), jnp.float32)
+    center = 0.5 * (tree.lo[node] + tree.hi[node])
+    pts = center[:, None, :] + jnp.asarray(rng.normal(scale=0.05, size=(b, s, 3)), jnp.float32)
     pts = pts.at[0, 0].set(state.xyz[int(np.flatnonzero(alive)[0])])  # a sample exactly on a point
     w = jnp.asarray(rng.random((b, s)), jnp.float32)
     w = w / w.sum(1, keepdims=True)

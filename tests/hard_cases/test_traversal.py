@@ -77,8 +77,8 @@ def hard_rays(tree, xyz, alive, rng):
         u = rng.normal(size=3)  # from inside the box
         o.append(c)
         d.append(u / np.linalg.norm(u))
-    centre = pts.mean(0)
-    o.append(centre + np.array([0.0, 0.0, 3 * ext]))  # pointing away: misses everything
+    center = pts.mean(0)
+    o.append(center + np.array([0.0, 0.0, 3 * ext]))  # pointing away: misses everything
     d.append(np.array([0.0, -0.0, 1.0]))
     k = NUM_RAYS - len(o)
     ao, ad = aimed_rays(xyz, alive, rng, k, float(tree.spacing))

@@ -93,7 +93,7 @@ def test_ratio_0_on_a_cloud_renders_a_and_ratio_1_on_b_cloud_renders_b(models):
     np.testing.assert_allclose(end, own_b, atol=1e-5)
 
 
-def test_blended_shading_mixes_both_colour_models_by_the_ratio():
+def test_blended_shading_mixes_both_color_models_by_the_ratio():
     fa, fb = Effects(), Effects(specular=False)
     ref = tiny_render().shading
     ca, cb = (dataclasses.replace(ref, effects=dataclasses.replace(e, ist=True)) for e in (fa, fb))

@@ -49,10 +49,10 @@ def sphere_rgba(c2w: np.ndarray, size: int, focal: float, radius: float, ss: int
     disc = b**2 - (o @ o - radius**2)
     hit = disc > 0
     t = -b - np.sqrt(np.maximum(disc, 0.0))
-    colour = 0.5 + 0.4 * np.sin(6.0 * (o + t[:, None] * d)) * hit[:, None]
+    color = 0.5 + 0.4 * np.sin(6.0 * (o + t[:, None] * d)) * hit[:, None]
     hit = hit.reshape(size, size, ss * ss)
-    colour = colour.reshape(size, size, ss * ss, 3)
-    rgb = (colour * hit[..., None]).sum(2) / np.maximum(hit.sum(-1), 1)[..., None]
+    color = color.reshape(size, size, ss * ss, 3)
+    rgb = (color * hit[..., None]).sum(2) / np.maximum(hit.sum(-1), 1)[..., None]
     return np.concatenate([rgb, hit.mean(-1)[..., None]], -1).astype(np.float32)
 
 

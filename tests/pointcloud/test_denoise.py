@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ne_jax.geometry.points import PointState
-from ne_jax.pointcloud.optimise import PointOptConfig, denoise_points, mean_neighbour_distance
+from ne_jax.pointcloud.optimize import PointOptConfig, denoise_points, mean_neighbor_distance
 
 
 def _plane_with_hole(n=60, seed=0):
@@ -23,12 +23,12 @@ def _state(xyz, capacity=None):
     return PointState.from_numpy(xyz, capacity=capacity or len(xyz) + 8, feature_dim=4, key=jax.random.key(0))
 
 
-def test_mean_neighbour_distance_matches_brute_force():
+def test_mean_neighbor_distance_matches_brute_force():
     xyz = np.random.default_rng(1).uniform(-1, 1, (150, 3))
     d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
     np.fill_diagonal(d, np.inf)
     expected = np.sort(d, axis=1)[:, :8].mean(1)
-    np.testing.assert_allclose(mean_neighbour_distance(xyz, 8), expected, rtol=1e-12)
+    np.testing.assert_allclose(mean_neighbor_distance(xyz, 8), expected, rtol=1e-12)
 
 
 def test_a_clean_cloud_keeps_every_point_round_after_round():

@@ -263,7 +263,7 @@ def test_photo_consistent_surface_is_kept(textured_sphere):
     assert kept.sum() > 0.98 * occupied.sum()
 
 
-def test_view_dependent_colours_are_carved(textured_sphere):
+def test_view_dependent_colors_are_carved(textured_sphere):
     # the same masks, but each view paints the object its own random colour: nothing is consistent
     rng = np.random.default_rng(0)
     rgb = np.broadcast_to(rng.random((textured_sphere.num_views, 1, 1, 3)), textured_sphere.rgb.shape)
@@ -275,6 +275,6 @@ def test_view_dependent_colours_are_carved(textured_sphere):
     assert kept.sum() < occupied.sum()
 
 
-def test_photo_consistency_needs_colours(sphere):
+def test_photo_consistency_needs_colors(sphere):
     with pytest.raises(ValueError, match="views.rgb: photo-consistency"):
         carve_visual_hull(dataclasses.replace(CFG, photo_iters=1), sphere)

@@ -85,8 +85,8 @@ def naive_loop(cfg, params, points: PointState, camera: Camera, background, near
     for j in range(h):
         for i in range(w):
             inside = (np.floor(u) == i) & (np.floor(v) == j)
-            near_centre = (i + 0.5 - u) ** 2 + (j + 0.5 - v) ** 2 <= radius**2
-            idx = np.flatnonzero(ok & (inside | near_centre))
+            near_center = (i + 0.5 - u) ** 2 + (j + 0.5 - v) ** 2 <= radius**2
+            idx = np.flatnonzero(ok & (inside | near_center))
             idx = idx[np.argsort(t[idx], kind="stable")]
             trans, acc_t = 1.0, 0.0
             for p in idx:

@@ -222,7 +222,7 @@ def test_pred_normal_mix_blends_between_point_and_predicted():
                                np.asarray(shade(pred, p, f, n, d).rgb), atol=1e-6)
 
 
-def test_outputs_ranges_and_colour_formula():
+def test_outputs_ranges_and_color_formula():
     f, n, d, _ = _inputs(seed=7, unit=True)
     cfg = _cfg()
     p = _params(cfg)

@@ -17,7 +17,7 @@ import pytest
 from ne_jax.benchmark.generate import generate_scene
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.pointcloud.optimise import (
+from ne_jax.pointcloud.optimize import (
     PointOptConfig,
     add_points,
     prune_points,

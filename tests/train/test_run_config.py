@@ -19,7 +19,7 @@ GOLDEN = Path(__file__).parent / "golden"
 
 
 @pytest.mark.parametrize("name", ["tiny", "default", "paper"])
-def test_the_presets_serialise_byte_for_byte_as_pinned(name):
+def test_the_presets_serialize_byte_for_byte_as_pinned(name):
     cfg = PRESETS[name]()
     text = json.dumps(config_to_json(cfg), indent=2) + "\n"
     assert text == (GOLDEN / f"{name}.config.json").read_text(encoding="utf-8")

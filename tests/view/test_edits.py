@@ -80,7 +80,7 @@ def test_screen_rect_selection_matches_projection(points):
 def test_gizmo_transform_moves_the_selection_only(points):
     edit = E.ViewEdit.identity(points)
     sel = E.select_region(edit, E.Region.make("sphere", (0.3, 0.3, 0.3), 0.5))
-    pivot = E.selection_centre(edit, sel)
+    pivot = E.selection_center(edit, sel)
     t = E.Transform.from_gizmo(pivot, (1, 0, 0, 0), pivot + (0.1, 0.0, -0.2), _quat((0, 0, 1), 90), scale=1.5)
     moved = E.move_points(edit, sel, t)
     xyz = np.asarray(points.xyz, np.float64)

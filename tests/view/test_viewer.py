@@ -69,24 +69,24 @@ def test_port_in_use_and_missing_run_are_refused(viewer, tmp_path):
 
 def test_edit_steps_and_save_match_ne_jax_edit(viewer, tmp_path):
     xyz = np.asarray(viewer.model.scene.points.xyz)[np.asarray(viewer.model.scene.points.alive)]
-    centre = 0.5 * (xyz.min(0) + xyz.max(0))
+    center = 0.5 * (xyz.min(0) + xyz.max(0))
     # the warm-up compiled the edit path: the first edit and its render compile neither the IST nor
     # the render of a carried tree (small eager ops for new shapes aside)
     assert viewer.warmed.wait(300) and "failed" not in viewer.status
-    sel = viewer.select_region(E.Region.make("box", centre, np.ptp(xyz, 0) * 0.3))
-    wxyz, pos = _look_at(centre + (0, -3, 0), centre), centre + (0, -3, 0)
+    sel = viewer.select_region(E.Region.make("box", center, np.ptp(xyz, 0) * 0.3))
+    wxyz, pos = _look_at(center + (0, -3, 0), center), center + (0, -3, 0)
     with count_compiles() as compiled:
         viewer.move(E.Transform(translation=(0.05, 0, 0)))
         viewer.render(wxyz, pos, np.deg2rad(40), 24, 16)
     assert not {"jit(ist_from_plan)", "jit(_render_chunk)"} & set(compiled.names), compiled.names
     assert viewer.undo() and viewer.edited_model is viewer.model
     with pytest.raises(E.SelectionError, match="found none"):
-        viewer.select_region(E.Region.make("sphere", centre + 100, 0.01))
+        viewer.select_region(E.Region.make("sphere", center + 100, 0.01))
         viewer.move(E.Transform(translation=(0.1, 0, 0)))
-    sel = viewer.select_region(E.Region.make("box", centre + (0, 0, 0.25 * np.ptp(xyz[:, 2])),
+    sel = viewer.select_region(E.Region.make("box", center + (0, 0, 0.25 * np.ptp(xyz[:, 2])),
                                              np.ptp(xyz, 0) * (1.2, 1.2, 0.5)))
     assert 0 < sel.size < xyz.shape[0]
-    viewer.move(E.Transform.from_euler(E.selection_centre(viewer.edit, sel), (0.05, 0, 0), (0, 0, 30)))
+    viewer.move(E.Transform.from_euler(E.selection_center(viewer.edit, sel), (0.05, 0, 0), (0, 0, 30)))
     assert viewer.edited_model is not viewer.model and viewer.edit.changed(viewer._points)
     viewer.select(sel[:5])
     viewer.delete()

@@ -1,10 +1,10 @@
-"""summarise_deform: the by-kind table is the mean over scenes of each kind, per variant."""
+"""summarize_deform: the by-kind table is the mean over scenes of each kind, per variant."""
 
 import json
 
 import pytest
 
-from experiments.summarise_deform import by_kind, kind_of, main
+from experiments.summarize_deform import by_kind, kind_of, main
 
 
 def _rec(scene, edit, variant, psnr, ft=None):

@@ -1,7 +1,7 @@
 """One table from several ``experiments/equivariance.py`` results files: every model's PSNR per
 motion, with the tree carried and rebuilt, and the worst rigid motion per model.
 
-    python -m experiments.summarise_equivariance experiments/results/equivariance_*.json --out equivariance
+    python -m experiments.summarize_equivariance experiments/results/equivariance_*.json --out equivariance
 
 Writes ``experiments/results/<out>.md`` (the sources' commits and commands are listed under it).
 """

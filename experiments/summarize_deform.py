@@ -2,7 +2,7 @@
 scenes of each kind (smooth deformation, rigid part, cut, deletion, the two whole-scene turns) per
 variant, with the mean SSIM and LPIPS over every edit.
 
-    python -m experiments.summarise_deform experiments/results/deform_benchmark_tiny.json
+    python -m experiments.summarize_deform experiments/results/deform_benchmark_tiny.json
 
 Writes ``<stem>_by_kind.md`` next to the input.
 """
@@ -32,7 +32,7 @@ def kind_of(edit: str) -> str:
     for kind, names in KINDS.items():
         if edit in names:
             return kind
-    raise KeyError(f"summarise_deform: edit {edit!r} has no kind; expected one of {sorted(sum(KINDS.values(), ()))}")
+    raise KeyError(f"summarize_deform: edit {edit!r} has no kind; expected one of {sorted(sum(KINDS.values(), ()))}")
 
 
 def by_kind(records: list[dict], stage: str = "zero_shot") -> str:
@@ -64,7 +64,7 @@ def main(argv=None) -> None:
     data = json.loads(args.results.read_text(encoding="utf-8"))
     unedited = data.get("unedited", {})
     parts = [f"Deformation benchmark by kind of edit, preset `{data['preset']}`, commit {data['commit']} "
-             f"(from `{args.results.name}`; re-run: `python -m experiments.summarise_deform {args.results.name}`). "
+             f"(from `{args.results.name}`; re-run: `python -m experiments.summarize_deform {args.results.name}`). "
              "PSNR in dB, the mean over the scenes of each kind.", "", "**Zero-shot**", "",
              by_kind(data["records"])]
     if any("finetune" in r for r in data["records"]):

@@ -1,6 +1,6 @@
 """Point-cloud optimisation between training epochs: grow, prune, denoise (docs/design.md facts).
 
-One round (:func:`optimise_points`) on a trained model:
+One round (:func:`optimize_points`) on a trained model:
 
 1. **Grow.** :func:`scan_growth` (jit) walks each scanned training ray through the K-D voxels of the
    rendering levels *and* the growing level (whose larger boxes also cover holes in the cloud),
@@ -44,7 +44,7 @@ from ne_jax.geometry.capacity import LostCounts
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import Views
-from ne_jax.pointcloud.neighbours import statistical_outliers
+from ne_jax.pointcloud.neighbors import statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import at_test_time, level_samples
 from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, until_complete
@@ -281,7 +281,7 @@ def prune_points(cfg: PointOptConfig, points: PointState) -> tuple[PointState, d
     return _guarded_removal(points, low, cfg.min_points, "pruned")
 
 
-def mean_neighbour_distance(xyz: np.ndarray, k: int) -> np.ndarray:
+def mean_neighbor_distance(xyz: np.ndarray, k: int) -> np.ndarray:
     """``[N]`` mean distance of each point of ``xyz`` ``[N, 3]`` to its ``k`` nearest other points."""
     dist, _ = cKDTree(xyz).query(xyz, k=k + 1, workers=-1)
     return dist[:, 1:].mean(axis=1)
@@ -289,7 +289,7 @@ def mean_neighbour_distance(xyz: np.ndarray, k: int) -> np.ndarray:
 
 def denoise_points(cfg: PointOptConfig, points: PointState) -> tuple[PointState, dict]:
     """Open3D's statistical outlier removal over the alive points (``cfg.outlier_neighbors``,
-    ``cfg.outlier_std_ratio``; :func:`~ne_jax.pointcloud.neighbours.statistical_outliers`), keeping
+    ``cfg.outlier_std_ratio``; :func:`~ne_jax.pointcloud.neighbors.statistical_outliers`), keeping
     every point whose mean neighbour distance is below ``cfg.outlier_min_ratio`` times the median
     one. Returns ``(points, report)``."""
     alive = np.flatnonzero(np.asarray(points.alive))
@@ -299,7 +299,7 @@ def denoise_points(cfg: PointOptConfig, points: PointState) -> tuple[PointState,
     xyz = np.asarray(points.xyz, np.float64)[alive]
     outlier = statistical_outliers(xyz, cfg.outlier_neighbors, cfg.outlier_std_ratio)
     if cfg.outlier_min_ratio > 0 and outlier.any():
-        mean_dist = mean_neighbour_distance(xyz, cfg.outlier_neighbors)
+        mean_dist = mean_neighbor_distance(xyz, cfg.outlier_neighbors)
         outlier &= mean_dist >= cfg.outlier_min_ratio * np.median(mean_dist)
     remove = np.zeros(points.capacity, bool)
     remove[alive[outlier]] = True
@@ -315,7 +315,7 @@ def refresh_normals(points: PointState, views: Views | None, normal_cfg: NormalC
     return points.replace(normal=jnp.asarray(normals, points.normal.dtype))
 
 
-def optimise_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
+def optimize_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
                     rays: Rays, background, views: Views | None,
                     normal_cfg: NormalConfig = NormalConfig()) -> tuple[PointState, dict]:
     """One round: grow (from ``rays``), prune, denoise, re-estimate normals (see the module
@@ -338,5 +338,5 @@ def optimise_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict,
     return points, report
 
 
-__all__ = ["PointOptConfig", "add_points", "denoise_points", "grow_points", "mean_neighbour_distance",
-           "optimise_points", "prune_points", "refresh_normals", "resize_capacity", "scan_growth", "select_growth"]
+__all__ = ["PointOptConfig", "add_points", "denoise_points", "grow_points", "mean_neighbor_distance",
+           "optimize_points", "prune_points", "refresh_normals", "resize_capacity", "scan_growth", "select_growth"]

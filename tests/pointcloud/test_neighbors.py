@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from ne_jax.geometry.points import PointState
-from ne_jax.pointcloud import neighbours
-from ne_jax.pointcloud.neighbours import pca_normals, statistical_outliers
+from ne_jax.pointcloud import neighbors
+from ne_jax.pointcloud.neighbors import pca_normals, statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
-from ne_jax.pointcloud.optimise import PointOptConfig, denoise_points
+from ne_jax.pointcloud.optimize import PointOptConfig, denoise_points
 
 from .conftest import RADIUS
 
@@ -53,7 +53,7 @@ def test_pca_normals_scipy_equal_open3d(radius, max_nn):
     np.testing.assert_allclose(np.abs((a[ok] * b[ok]).sum(1)), 1.0, atol=1e-6)  # same axis, any sign
 
 
-def test_pca_normals_sparse_neighbourhoods_point_up():
+def test_pca_normals_sparse_neighborhoods_point_up():
     xyz = np.array([[0.0, 0, 0], [0.01, 0, 0], [5, 5, 5], [9, 0, 0]])
     for backend in ("open3d", "scipy"):
         out = pca_normals(xyz, radius=0.1, max_nn=10, backend=backend)
@@ -86,10 +86,10 @@ def test_training_cloud_operations_run_without_open3d(monkeypatch, sphere):
     denoised_o3d, report_o3d = denoise_points(PointOptConfig(outlier_neighbors=16), state)
 
     monkeypatch.setitem(sys.modules, "open3d", None)  # `import open3d` now raises ImportError
-    neighbours.open3d_module.cache_clear()
+    neighbors.open3d_module.cache_clear()
     try:
         with pytest.warns(UserWarning, match="open3d cannot be imported"):
-            assert neighbours.open3d_module() is None
+            assert neighbors.open3d_module() is None
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # warned once, and nothing else complains
             without = estimate_normals(cfg, xyz, sphere)
@@ -97,7 +97,7 @@ def test_training_cloud_operations_run_without_open3d(monkeypatch, sphere):
             votes = estimate_normals(NormalConfig(orient="visibility_votes"), xyz, sphere)
             denoised, report = denoise_points(PointOptConfig(outlier_neighbors=16), state)
     finally:
-        neighbours.open3d_module.cache_clear()  # Open3D again for the tests that follow
+        neighbors.open3d_module.cache_clear()  # Open3D again for the tests that follow
     agree = (with_o3d * without).sum(1)
     assert (agree > 0.999).mean() > 0.99  # oriented the same way, not only the same axis
     np.testing.assert_array_equal(tangent, votes)  # no scipy twin: the visibility votes decide
