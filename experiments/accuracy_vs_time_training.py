@@ -476,7 +476,7 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     if run is None:
         run = get_run_preset(preset)
         if quick:
-            run = run.with_schedule(epochs=2, steps_per_epoch=5).replace(point_rounds=(1, 0))  # no rounds
+            run = run.with_schedule(epochs=2, steps_per_epoch=5).replace(round_epochs=(1, 0))  # no rounds
     preset = run.name
     cands = candidates_for(run, quick, candidate_set)
     if train_only is not None:

@@ -285,11 +285,11 @@ def profile_stages(repeats: int, quick: bool) -> dict:
         rows.append({"stage": "whole training step", "batch": kind, "rays": r, "ms": 1e3 * t, "gflop": None,
                      "gflop_per_s": None, "vs_matmul": None})
         print(f"train  whole training step {1e3 * t:9.2f} ms", flush=True)
-        # host side: a tree rebuild after each point round (run.point_rounds), amortised over an epoch
+        # host side: a tree rebuild after each point round (run.round_epochs), amortised over an epoch
         t0 = time.perf_counter()
         build_tree(np.asarray(pts.xyz), np.asarray(pts.alive), tc)
         t_build = time.perf_counter() - t0
-        rounds = run.point_rounds[1] - run.point_rounds[0] + 1  # after epochs first .. last, inclusive
+        rounds = run.round_epochs[1] - run.round_epochs[0] + 1  # after epochs first .. last, inclusive
         rows.append({"stage": "host: tree rebuild (per round)", "batch": kind, "rays": r, "ms": 1e3 * t_build,
                      "gflop": None, "gflop_per_s": None, "vs_matmul": None,
                      "amortised_ms_per_step": 1e3 * t_build * rounds / (run.epochs * run.steps_per_epoch)})

@@ -210,7 +210,7 @@ def _cmd_finetune(args) -> int:
     out = Path(args.out)
     t0 = time.perf_counter()
     result = finetune(model, out, args.epochs, scene_dir=scene_dir, steps_per_epoch=args.steps_per_epoch,
-                      train_ist=args.train_ist, optimize_points=args.optimize_points, resume=not args.restart,
+                      train_ist=args.train_ist, rounds=args.rounds, resume=not args.restart,
                       progress=not args.quiet)
     print(f"fine-tuned {result.run.total_steps} steps in {time.perf_counter() - t0:.1f} s -> {out}")
     if not args.no_eval:
@@ -400,7 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--epochs", type=int, default=1)
     ft.add_argument("--steps-per-epoch", type=int, default=None, help="default: the model's preset")
     ft.add_argument("--train-ist", action="store_true", help="make the ISTs trainable (kept orthogonal by a loss)")
-    ft.add_argument("--optimize-points", action="store_true",
+    ft.add_argument("--rounds", action="store_true",
                     help="point-cloud rounds after epochs 1..min(5, epochs-1) (paper: warm-up, then rounds)")
     ft.add_argument("--restart", action="store_true",
                     help="start afresh: remove the checkpoints and metrics of an earlier run in --out")

@@ -48,7 +48,7 @@ def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
 MOVED = {
     "ne_jax.train.loop:RunConfig": "ne_jax.train.run:RunConfig",
     "ne_jax.train.loop:InitConfig": "ne_jax.train.run:InitConfig",
-    "ne_jax.pointcloud.optimise:PointOptConfig": "ne_jax.pointcloud.optimize:PointOptConfig",
+    "ne_jax.pointcloud.optimise:PointOptConfig": "ne_jax.pointcloud.rounds:RoundConfig",
 }
 """Config types stored under an older module path -> where they live now (read side only: a run
 directory written before a move still loads and resumes)."""
@@ -63,24 +63,31 @@ MOVED_FIELDS = {
 ``ne_jax.geometry.capacity:Capacities`` (read side only): they move to the root ``RunConfig``'s
 ``capacities``, or are dropped where the root is another config."""
 
+RENAMED_FIELDS = {
+    "ne_jax.train.run:RunConfig": {"points": "rounds", "point_rounds": "round_epochs"},
+}
+"""Fields stored under an older name -> their name now, per config type (read side only)."""
+
 _CAPACITIES = "ne_jax.geometry.capacity:Capacities"
 
 
 def _upgrade(data: Any) -> Any:
-    """``data`` with the type names of :data:`MOVED` replaced by the current ones and the fields of
-    :data:`MOVED_FIELDS` moved to a root ``RunConfig``'s ``capacities``."""
+    """``data`` with the type names of :data:`MOVED` and the fields of :data:`RENAMED_FIELDS`
+    replaced by the current ones, and the fields of :data:`MOVED_FIELDS` moved to a root
+    ``RunConfig``'s ``capacities``."""
     moved: dict = {}
 
     def walk(node):
         if isinstance(node, dict):
             kind = MOVED.get(node.get("__type__"), node.get("__type__"))
             fields = MOVED_FIELDS.get(kind, {})
+            renamed = RENAMED_FIELDS.get(kind, {})
             out = {}
             for k, v in node.items():
                 if k in fields:
                     moved[fields[k]] = v
                 else:
-                    out[k] = kind if k == "__type__" else walk(v)
+                    out[renamed.get(k, k)] = kind if k == "__type__" else walk(v)
             return out
         if isinstance(node, list):
             return [walk(v) for v in node]

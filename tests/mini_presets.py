@@ -12,7 +12,7 @@ import dataclasses
 from ne_jax.benchmark.generate import BenchmarkPreset
 from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.kdtree import KDTreeConfig
-from ne_jax.pointcloud.optimize import PointOptConfig
+from ne_jax.pointcloud.rounds import RoundConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
 from ne_jax.train.run import InitConfig, RunConfig
@@ -72,8 +72,8 @@ def mini_run(**changes) -> RunConfig:
     length)."""
     run = RunConfig(name="test", render=mini_render(), capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
                     train=TrainConfig(lr=5e-3), init=mini_init(),
-                    points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
-                    epochs=3, steps_per_epoch=3, point_rounds=(1, 2), log_every=2)
+                    rounds=RoundConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
+                    epochs=3, steps_per_epoch=3, round_epochs=(1, 2), log_every=2)
     return run.with_schedule().replace(**changes)
 
 
@@ -81,7 +81,7 @@ def short_run(**changes) -> RunConfig:
     """:func:`mini_run` for one epoch of 4 steps, no point-cloud round, coarser carving (a model to
     evaluate or edit, trained in seconds)."""
     return mini_run(init=mini_init(resolution=40, num_points=1200), epochs=1, steps_per_epoch=4,
-                    point_rounds=(1, 0)).replace(**changes)
+                    round_epochs=(1, 0)).replace(**changes)
 
 
 __all__ = ["GEN_SCENES", "MINI_CAPS", "TRAIN_SCENE", "mini_benchmark", "mini_init", "mini_render", "mini_run",

@@ -52,19 +52,19 @@ def edit_model(model: TrainedModel, edit: EditSource, out_dir: str | Path | None
 
 
 def finetune_config(run: RunConfig, epochs: int = 1, *, steps_per_epoch: int | None = None,
-                    train_ist: bool = False, optimize_points: bool = False) -> RunConfig:
+                    train_ist: bool = False, rounds: bool = False) -> RunConfig:
     """The run config of fine-tuning an edited model for ``epochs`` epochs: a fresh cosine schedule
     over them, trainable ISTs (kept orthogonal by ``ist_orthogonality = 1``) when ``train_ist``, and
-    point-cloud rounds after epochs ``1 .. min(5, epochs - 1)`` when ``optimize_points`` (paper:
+    point-cloud rounds after epochs ``1 .. min(5, epochs - 1)`` when ``rounds`` (paper:
     one warm-up epoch, then rounds)."""
     loss = run.train.loss.replace(ist_orthogonality=1.0 if train_ist else 0.0)
     run = run.replace(train=run.train.replace(train_ist=train_ist, loss=loss),
-                      point_rounds=(1, min(5, epochs - 1)) if optimize_points else (1, 0))
+                      round_epochs=(1, min(5, epochs - 1)) if rounds else (1, 0))
     return run.with_schedule(epochs, steps_per_epoch).replace(name=f"{run.name}-finetune")
 
 
 def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene_dir: str | Path | None = None,
-             steps_per_epoch: int | None = None, train_ist: bool = False, optimize_points: bool = False,
+             steps_per_epoch: int | None = None, train_ist: bool = False, rounds: bool = False,
              resume: bool = True, progress: bool = True, log=print) -> TrainedModel:
     """Fine-tune an edited ``model`` on the training views of ``scene_dir`` (default: the edited
     scene recorded with the model) into ``run_dir``; see :func:`finetune_config`.
@@ -77,7 +77,7 @@ def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene
         raise EditError("finetune: expected the edited scene's folder (training views of the edited scene), "
                         "found none recorded with the model; pass scene_dir / --scene")
     run = finetune_config(model.run, epochs, steps_per_epoch=steps_per_epoch, train_ist=train_ist,
-                          optimize_points=optimize_points)
+                          rounds=rounds)
     start = StartFrom(params=model.state.params, points=model.state.point_state(model.scene.points),
                       scene=model.scene if model.scene.rest_xyz is not None else None,
                       note={"from_step": int(model.state.step), "edit": model.meta.get("extra", {}).get("edit")})

@@ -23,7 +23,7 @@ Built on the host (numpy + ``scipy.spatial.cKDTree``), not under ``jit``: a sing
 ``argsort`` under jit (2^20 points, 0.18-0.19 s) costs more than numpy's split of that level
 (``experiments/bench_geometry.py``, field ``jit_vs_host``), and the candidate sets need k-NN queries,
 where scipy's C++ tree is 10-35x faster than the JAX KNN structures measured for docs/design.md. Building
-is rare (after edits and point-cloud optimisation); everything the tree feeds (``intersect``,
+is rare (after edits and point-cloud rounds); everything the tree feeds (``intersect``,
 ``knn_interpolate``) is jit-compiled.
 
 Cost, by phase (``build_tree(..., timings=)``): ``splits`` — one ``argpartition`` per level on

@@ -1,4 +1,4 @@
-"""The training run: initial cloud, epochs of jitted steps, point-cloud optimisation between
+"""The training run: initial cloud, epochs of jitted steps, point-cloud rounds between
 epochs, checkpoints, and a run directory a person can read.
 
 ``model = train(RunConfig.tiny(), scene_dir, run_dir)`` returns a
@@ -43,7 +43,7 @@ from ne_jax.pointcloud.init import (
     load_ply_cloud,
 )
 from ne_jax.pointcloud.normals import estimate_normals
-from ne_jax.pointcloud.optimize import optimize_points
+from ne_jax.pointcloud.rounds import point_round
 from ne_jax.render.renderer import PointScene
 from ne_jax.train.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, save_checkpoint
 from ne_jax.train.model import (
@@ -282,13 +282,13 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
             record["capacities"] = dataclasses.asdict(scene.capacities)
             # a batch lost segments to the packing budget: grow it (the traversal's losses are counted)
             scene = scene.grown(LostCounts(**record["lost"]), TRAINING_GROWS) or scene
-            if run.optimizes_points_after(epoch):
+            if run.round_after(epoch):
                 t1 = time.perf_counter()
                 trained = state.scene(scene)
-                rays = sample_batch(sampler.replace(batch_size=run.points.grow_rays), pool,
+                rays = sample_batch(sampler.replace(batch_size=run.rounds.grow_rays), pool,
                                     jax.random.fold_in(k_rounds, epoch)).rays
-                new_points, report = optimize_points(run.points, render, state.params, trained, rays,
-                                                     pool.background, views, run.normals)
+                new_points, report = point_round(run.rounds, render, state.params, trained, rays,
+                                             pool.background, views, run.normals)
                 reset = _changed_slots(trained.points, new_points)
                 state = state.with_points(new_points, reset)
                 scene = PointScene.build(new_points, run.render, scene.capacities)

@@ -14,7 +14,7 @@ from ne_jax.pointcloud.init import (
     CarveConfig,
 )
 from ne_jax.pointcloud.normals import NormalConfig
-from ne_jax.pointcloud.optimize import PointOptConfig
+from ne_jax.pointcloud.rounds import RoundConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
 from ne_jax.train.sampler import SamplerConfig
@@ -63,13 +63,14 @@ class RunConfig:
     render: RenderConfig = RenderConfig()
     train: TrainConfig = TrainConfig()
     sampler: SamplerConfig = SamplerConfig()
-    points: PointOptConfig = PointOptConfig()
+    rounds: RoundConfig = RoundConfig()
+    """The point-cloud round: grow, prune, denoise (:mod:`ne_jax.pointcloud.rounds`)."""
     normals: NormalConfig = NormalConfig()
     init: InitConfig = InitConfig()
     epochs: int = 16
     steps_per_epoch: int = 1000
-    point_rounds: tuple[int, int] = (4, 12)
-    """The cloud is optimised after epochs ``first .. last`` (1-based, inclusive; docs/design.md: 4-12)."""
+    round_epochs: tuple[int, int] = (4, 12)
+    """A point-cloud round follows epochs ``first .. last`` (1-based, inclusive; docs/design.md: 4-12)."""
     background: str = "white"
     """The colour behind the object in training and evaluation (``"white"``, ``"black"``)."""
     seed: int = 0
@@ -85,10 +86,10 @@ class RunConfig:
         if int(self.epochs) < 1 or int(self.steps_per_epoch) < 1:
             raise ValueError(f"RunConfig: expected epochs >= 1 and steps_per_epoch >= 1, found "
                              f"{self.epochs} and {self.steps_per_epoch}")
-        a, b = self.point_rounds
+        a, b = self.round_epochs
         if not 1 <= a <= b + 1:
-            raise ValueError("RunConfig.point_rounds: expected (first, last) with 1 <= first <= last + 1, "
-                             f"found {self.point_rounds}")
+            raise ValueError("RunConfig.round_epochs: expected (first, last) with 1 <= first <= last + 1, "
+                             f"found {self.round_epochs}")
 
     def replace(self, **changes) -> RunConfig:
         """This config with ``changes``; a schedule that spans the run (:attr:`schedule_spans_run`)
@@ -118,9 +119,9 @@ class RunConfig:
         """Whether the learning-rate schedule decays over exactly the run's :attr:`total_steps`."""
         return int(self.train.total_steps) == self.total_steps
 
-    def optimizes_points_after(self, epoch: int) -> bool:
+    def round_after(self, epoch: int) -> bool:
         """Whether a point-cloud round follows epoch ``epoch`` (1-based); never after the last."""
-        a, b = self.point_rounds
+        a, b = self.round_epochs
         return a <= epoch <= b and epoch < self.epochs
 
     @classmethod
@@ -132,8 +133,8 @@ class RunConfig:
                               quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)), chunk=1024)
         base = cls(name="tiny", render=render, capacities=Capacities(frontier=32, max_segments=32),
                    sampler=SamplerConfig(batch_size=1024),
-                   train=TrainConfig(lr=5e-3), points=PointOptConfig(grow_rays=4096),
-                   epochs=6, steps_per_epoch=125, point_rounds=(2, 4))
+                   train=TrainConfig(lr=5e-3), rounds=RoundConfig(grow_rays=4096),
+                   epochs=6, steps_per_epoch=125, round_epochs=(2, 4))
         return base.with_schedule().replace(**changes)
 
     @classmethod
@@ -149,7 +150,7 @@ class RunConfig:
         base = cls(name="default", render=render, capacities=Capacities(first_pass_frontier=16, retry_share=0.25),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
                    sampler=SamplerConfig(batch_size=2048), train=TrainConfig(lr=5e-3),
-                   epochs=12, steps_per_epoch=500, point_rounds=(3, 9))
+                   epochs=12, steps_per_epoch=500, round_epochs=(3, 9))
         return base.with_schedule().replace(**changes)
 
     @classmethod
@@ -162,7 +163,7 @@ class RunConfig:
                    capacities=Capacities(max_segments=64),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
                    sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),
-                   epochs=16, steps_per_epoch=5000, point_rounds=(4, 12))
+                   epochs=16, steps_per_epoch=5000, round_epochs=(4, 12))
         return base.with_schedule().replace(**changes)
 
 

@@ -17,7 +17,7 @@ from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.model import edit_model, finetune
 from ne_jax.edit.targets import EditError
 from ne_jax.eval import evaluate_model
-from ne_jax.pointcloud.optimize import PointOptConfig
+from ne_jax.pointcloud.rounds import RoundConfig
 from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.train import SamplerConfig, TrainConfig
 from ne_jax.train.loop import train
@@ -43,8 +43,8 @@ def trained(scene_dir, tmp_path_factory):
     init = InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=40, num_points=1200))
     run = RunConfig(name="test", render=render, capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
                     train=TrainConfig(lr=5e-3),
-                    init=init, points=PointOptConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
-                    epochs=1, steps_per_epoch=4, point_rounds=(1, 0), log_every=2).with_schedule()
+                    init=init, rounds=RoundConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
+                    epochs=1, steps_per_epoch=4, round_epochs=(1, 0), log_every=2).with_schedule()
     out = tmp_path_factory.mktemp("run") / "trained"
     train(run, scene_dir, out, progress=False, log=lambda s: None)
     return out

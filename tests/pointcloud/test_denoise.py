@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ne_jax.geometry.points import PointState
-from ne_jax.pointcloud.optimize import PointOptConfig, denoise_points, mean_neighbor_distance
+from ne_jax.pointcloud.rounds import RoundConfig, denoise_points, mean_neighbor_distance
 
 
 def _plane_with_hole(n=60, seed=0):
@@ -33,7 +33,7 @@ def test_mean_neighbor_distance_matches_brute_force():
 
 def test_a_clean_cloud_keeps_every_point_round_after_round():
     points = _state(_plane_with_hole())
-    cfg = PointOptConfig(outlier_neighbors=16)
+    cfg = RoundConfig(outlier_neighbors=16)
     for _ in range(3):
         points, report = denoise_points(cfg, points)
         assert report["denoised"] == 0
@@ -42,7 +42,7 @@ def test_a_clean_cloud_keeps_every_point_round_after_round():
 def test_without_the_floor_a_clean_cloud_erodes():
     """The statistical rule alone removes good points at the hole and the border every round."""
     points = _state(_plane_with_hole())
-    cfg = PointOptConfig(outlier_neighbors=16, outlier_min_ratio=0.0)
+    cfg = RoundConfig(outlier_neighbors=16, outlier_min_ratio=0.0)
     removed = []
     for _ in range(3):
         points, report = denoise_points(cfg, points)
@@ -54,7 +54,7 @@ def test_floaters_are_removed_and_the_surface_is_not():
     plane = _plane_with_hole()
     floaters = np.random.default_rng(2).uniform(-1, 1, (15, 3)) * [1, 1, 0] + [0, 0, 0.5]
     floaters[:, 2] += np.random.default_rng(3).uniform(0, 0.5, 15)
-    points, report = denoise_points(PointOptConfig(outlier_neighbors=16), _state(np.concatenate([plane, floaters])))
+    points, report = denoise_points(RoundConfig(outlier_neighbors=16), _state(np.concatenate([plane, floaters])))
     alive = np.asarray(points.alive)
     assert alive[:len(plane)].all() and not alive[len(plane):len(plane) + 15].any()
     assert report["denoised"] == 15
@@ -63,11 +63,11 @@ def test_floaters_are_removed_and_the_surface_is_not():
 def test_identical_points_and_dead_slots():
     """All points at one place (median distance 0): nothing is an outlier; dead slots stay dead."""
     points = _state(np.zeros((100, 3)), capacity=120)
-    out, report = denoise_points(PointOptConfig(outlier_neighbors=16), points)
+    out, report = denoise_points(RoundConfig(outlier_neighbors=16), points)
     assert report["denoised"] == 0 and np.asarray(out.alive).sum() == 100
 
 
 @pytest.mark.parametrize("value", [-1.0, float("nan")])
 def test_bad_floor_names_the_field(value):
     with pytest.raises(ValueError, match="outlier_min_ratio"):
-        PointOptConfig(outlier_min_ratio=value)
+        RoundConfig(outlier_min_ratio=value)

@@ -12,7 +12,7 @@ from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud import neighbors
 from ne_jax.pointcloud.neighbors import pca_normals, statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
-from ne_jax.pointcloud.optimize import PointOptConfig, denoise_points
+from ne_jax.pointcloud.rounds import RoundConfig, denoise_points
 
 from .conftest import RADIUS
 
@@ -83,7 +83,7 @@ def test_training_cloud_operations_run_without_open3d(monkeypatch, sphere):
     cfg = NormalConfig()
     with_o3d = estimate_normals(cfg, xyz, sphere)
     state = PointState.from_numpy(np.concatenate([xyz, [[3.0, 3, 3]]]), feature_dim=4, key=jax.random.key(0))
-    denoised_o3d, report_o3d = denoise_points(PointOptConfig(outlier_neighbors=16), state)
+    denoised_o3d, report_o3d = denoise_points(RoundConfig(outlier_neighbors=16), state)
 
     monkeypatch.setitem(sys.modules, "open3d", None)  # `import open3d` now raises ImportError
     neighbors.open3d_module.cache_clear()
@@ -95,7 +95,7 @@ def test_training_cloud_operations_run_without_open3d(monkeypatch, sphere):
             without = estimate_normals(cfg, xyz, sphere)
             tangent = estimate_normals(NormalConfig(orient="tangent_plane"), xyz, sphere)
             votes = estimate_normals(NormalConfig(orient="visibility_votes"), xyz, sphere)
-            denoised, report = denoise_points(PointOptConfig(outlier_neighbors=16), state)
+            denoised, report = denoise_points(RoundConfig(outlier_neighbors=16), state)
     finally:
         neighbors.open3d_module.cache_clear()  # Open3D again for the tests that follow
     agree = (with_o3d * without).sum(1)

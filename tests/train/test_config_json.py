@@ -78,9 +78,11 @@ def test_a_config_stored_under_a_moved_type_name_reads_back_and_resumes():
 
     run = RunConfig.tiny()
     stored = json.loads(json.dumps(cj.config_to_json(run)).replace("ne_jax.train.run:", "ne_jax.train.loop:")
-                        .replace("ne_jax.pointcloud.optimize:", "ne_jax.pointcloud.optimise:"))
+                        .replace("ne_jax.pointcloud.rounds:RoundConfig", "ne_jax.pointcloud.optimise:PointOptConfig")
+                        .replace('"rounds":', '"points":').replace('"round_epochs":', '"point_rounds":'))
     assert stored["__type__"] == "ne_jax.train.loop:RunConfig"
     assert stored["points"]["__type__"] == "ne_jax.pointcloud.optimise:PointOptConfig"
+    assert "point_rounds" in stored and "round_epochs" not in stored
     assert cj.config_from_json(stored) == run
     assert cj.config_diff(stored, cj.config_to_json(run)) == []
     assert cj.config_diff(stored, cj.config_to_json(run.replace(seed=1))) == ["seed: checkpoint 0, run 1"]

@@ -17,8 +17,8 @@ import pytest
 from ne_jax.benchmark.generate import generate_scene
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.pointcloud.optimize import (
-    PointOptConfig,
+from ne_jax.pointcloud.rounds import (
+    RoundConfig,
     add_points,
     prune_points,
     scan_growth,
@@ -131,8 +131,8 @@ def test_training_counts_traversal_losses_and_saves_the_capacities(scene_dir, tm
     frontier nodes and segment slots, each epoch's record says how many and which capacities were in
     force, and the traversal is not grown in training (``TRAINING_GROWS``: only the packing
     budget); the model comes back with the capacities it ended with."""
-    starved = mini_run(epochs=2, point_rounds=(1, 0), capacities=MINI_CAPS.replace(frontier=2, max_segments=2))
-    assert config_key(starved) == config_key(mini_run(epochs=2, point_rounds=(1, 0)))
+    starved = mini_run(epochs=2, round_epochs=(1, 0), capacities=MINI_CAPS.replace(frontier=2, max_segments=2))
+    assert config_key(starved) == config_key(mini_run(epochs=2, round_epochs=(1, 0)))
     model = train(starved, scene_dir, tmp_path / "starved", progress=False, log=lambda s: None)
     for e in model.history:
         assert e["lost"]["frontier"] > 0 and e["lost"]["slots"] > 0 and e["lost"]["rays"] == 3 * 128
@@ -161,7 +161,7 @@ def test_a_scene_with_one_view_trains(scene_dir, tmp_path):
     assert int(res.state.step) == 3 and np.isfinite(res.history[-1]["loss/total"])
 
 
-# ---------------------------------------------------------------- point-cloud optimisation
+# ---------------------------------------------------------------- point-cloud rounds
 
 
 def test_growth_past_capacity_reallocates_and_the_step_runs_on_the_new_shapes(full_run):
@@ -192,11 +192,11 @@ def test_growth_past_capacity_reallocates_and_the_step_runs_on_the_new_shapes(fu
 def test_pruning_everything_is_refused_and_reported(full_run):
     points = full_run.scene.points
     doomed = points.replace(conf_logit=jnp.full_like(points.conf_logit, -10.0))  # every confidence ~ 4.5e-5
-    kept, report = prune_points(PointOptConfig(), doomed)
+    kept, report = prune_points(RoundConfig(), doomed)
     assert report["pruned_skipped"] and report["pruned"] == 0 and "min_points" in report["pruned_note"]
     np.testing.assert_array_equal(np.asarray(kept.alive), np.asarray(points.alive))
     some = points.replace(conf_logit=points.conf_logit.at[:10].set(-10.0))
-    pruned, report = prune_points(PointOptConfig(), some)
+    pruned, report = prune_points(RoundConfig(), some)
     assert report["pruned"] == int(np.asarray(points.alive)[:10].sum()) and not np.asarray(pruned.alive)[:10].any()
 
 

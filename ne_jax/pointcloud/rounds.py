@@ -1,6 +1,6 @@
-"""Point-cloud optimisation between training epochs: grow, prune, denoise (docs/design.md facts).
+"""Point-cloud rounds between training epochs: grow, prune, denoise (docs/design.md facts).
 
-One round (:func:`optimize_points`) on a trained model:
+One round (:func:`point_round`) on a trained model:
 
 1. **Grow.** :func:`scan_growth` (jit) walks each scanned training ray through the K-D voxels of the
    rendering levels *and* the growing level (whose larger boxes also cover holes in the cloud),
@@ -52,8 +52,8 @@ from ne_jax.render.stage import shade_samples
 
 
 @dataclasses.dataclass(frozen=True)
-class PointOptConfig:
-    """Settings of one point-cloud optimisation round (hashable)."""
+class RoundConfig:
+    """Settings of one point-cloud round (hashable)."""
 
     grow: bool = True
     prune: bool = True
@@ -105,7 +105,7 @@ class PointOptConfig:
         need(self.min_points >= 1, "min_points", "an integer >= 1")
         need(self.capacity_headroom >= 1, "capacity_headroom", ">= 1")
 
-    def replace(self, **changes) -> PointOptConfig:
+    def replace(self, **changes) -> RoundConfig:
         return dataclasses.replace(self, **changes)
 
 
@@ -220,7 +220,7 @@ def resize_capacity(points: PointState, capacity: int) -> PointState:
                           ist=jnp.concatenate([points.ist, eye]))
 
 
-def grow_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
+def grow_points(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
                 rays: Rays, background, max_grow: int = 4) -> tuple[PointState, dict]:
     """Scan ``rays`` (``[R]``, targets set) in chunks, select and add the new points. A chunk that
     lost segments to the scene's capacities is scanned again with them grown
@@ -274,7 +274,7 @@ def _guarded_removal(points: PointState, remove: np.ndarray, min_points: int, wh
     return points.replace(alive=jnp.asarray(alive & ~remove)), {f"{what}": int(remove.sum()), f"{what}_skipped": False}
 
 
-def prune_points(cfg: PointOptConfig, points: PointState) -> tuple[PointState, dict]:
+def prune_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, dict]:
     """Mark points with confidence below ``cfg.prune_threshold`` dead (unless fewer than
     ``cfg.min_points`` would stay alive). Returns ``(points, report)``."""
     low = np.asarray(points.confidence) < cfg.prune_threshold
@@ -287,7 +287,7 @@ def mean_neighbor_distance(xyz: np.ndarray, k: int) -> np.ndarray:
     return dist[:, 1:].mean(axis=1)
 
 
-def denoise_points(cfg: PointOptConfig, points: PointState) -> tuple[PointState, dict]:
+def denoise_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, dict]:
     """Open3D's statistical outlier removal over the alive points (``cfg.outlier_neighbors``,
     ``cfg.outlier_std_ratio``; :func:`~ne_jax.pointcloud.neighbors.statistical_outliers`), keeping
     every point whose mean neighbour distance is below ``cfg.outlier_min_ratio`` times the median
@@ -315,9 +315,9 @@ def refresh_normals(points: PointState, views: Views | None, normal_cfg: NormalC
     return points.replace(normal=jnp.asarray(normals, points.normal.dtype))
 
 
-def optimize_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
-                    rays: Rays, background, views: Views | None,
-                    normal_cfg: NormalConfig = NormalConfig()) -> tuple[PointState, dict]:
+def point_round(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
+                rays: Rays, background, views: Views | None,
+                normal_cfg: NormalConfig = NormalConfig()) -> tuple[PointState, dict]:
     """One round: grow (from ``rays``), prune, denoise, re-estimate normals (see the module
     docstring). Returns the new :class:`PointState` (rebuild the tree with
     :meth:`PointScene.build`) and a report of every count."""
@@ -338,5 +338,5 @@ def optimize_points(cfg: PointOptConfig, render_cfg: RenderConfig, params: dict,
     return points, report
 
 
-__all__ = ["PointOptConfig", "add_points", "denoise_points", "grow_points", "mean_neighbor_distance",
-           "optimize_points", "prune_points", "refresh_normals", "resize_capacity", "scan_growth", "select_growth"]
+__all__ = ["RoundConfig", "add_points", "denoise_points", "grow_points", "mean_neighbor_distance",
+           "point_round", "prune_points", "refresh_normals", "resize_capacity", "scan_growth", "select_growth"]
