@@ -103,7 +103,7 @@ def main(argv=None) -> None:
             variants = {  # (render config, scene)
                 "specular off (diffuse only)": (base.with_effects(specular=False), scene),
                 "IST on": (base.with_effects(ist=True), scene),
-                "background sphere on": (base.with_effects(background="sphere"), scene),
+                "background sphere on": (base.with_effects(background_model="sphere"), scene),
                 "predicted normals (no point normals)": (base.with_effects(point_normals=False), scene),
                 "traditional colour head": (base.with_effects(specular=False, color_head="traditional"), scene),
                 # Unpacked, every one of the M slots per ray is sampled and shaded: at the default

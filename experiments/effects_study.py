@@ -102,15 +102,15 @@ def main(argv=None) -> None:
     atomic_write_json(RESULTS / f"{out}.json", report)
     lines = [f"Declared effects (`scene.json`) against every effect on (`all`), preset `{args.preset}`, commit "
              f"{report['commit']}: `{command}`.", "",
-             "| scene | effects | specular | background | train s | train CPU s | s / image | CPU s / image | "
+             "| scene | effects | specular | background model | train s | train CPU s | s / image | CPU s / image | "
              "parameters | test PSNR | test SSIM |",
              "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         e = r["effects"]
         cpu = "-" if r["train_cpu_seconds"] is None else f"{r['train_cpu_seconds']:.0f}"
-        lines.append(f"| {r['scene']} | {r['spec']} | {e['specular']} | {e['background']} | {r['train_seconds']:.0f} | "
-                     f"{cpu} | {r['seconds_per_image']:.2f} | {r['cpu_seconds_per_image']:.2f} | {r['parameters']:,} | "
-                     f"{r['psnr']:.2f} | {r['ssim']:.3f} |")
+        lines.append(f"| {r['scene']} | {r['spec']} | {e['specular']} | {e['background_model']} | "
+                     f"{r['train_seconds']:.0f} | {cpu} | {r['seconds_per_image']:.2f} | "
+                     f"{r['cpu_seconds_per_image']:.2f} | {r['parameters']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} |")
     atomic_write_text(RESULTS / f"{out}.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -351,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--effects", default="scene", metavar="SPEC",
                     help="effects the model computes: scene (what the scene folder's scene.json declares, else the "
                          "preset's; default), auto (decided from the training views), all, or pairs such as "
-                         "specular=off,background=sphere (specular=on|off, background=constant|sphere)")
+                         "specular=off,background_model=sphere (specular=on|off, background_model=constant|sphere)")
     tr.add_argument("--restart", action="store_true",
                     help="start afresh: remove the checkpoints and metrics of an earlier run in --out")
     tr.add_argument("--no-eval", action="store_true", help="skip evaluating the test views after training")

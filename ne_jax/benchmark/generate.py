@@ -99,7 +99,7 @@ class BenchmarkPreset:
             from ne_jax.benchmark import pathtracer
 
             shiny = any(s.kind != "diffuse" for s in pathtracer.scene_surfaces(scene.name, scene.materials))
-        return {"specular": bool(shiny and not self.matte), "background": "constant" if self.alpha else "sphere"}
+        return {"specular": bool(shiny and not self.matte), "background_model": "constant" if self.alpha else "sphere"}
 
 
 PRESETS = {

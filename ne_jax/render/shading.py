@@ -72,15 +72,15 @@ class Effects:
     input is ignored (pass ``None``). Unedited scenes leave it off; it adds no parameters."""
     point_normals: bool = True
     """Reflect about the integrated point-cloud normal (paper); off: about the predicted normal."""
-    background: Literal["constant", "sphere"] = "constant"
+    background_model: Literal["constant", "sphere"] = "constant"
     """``"constant"``: a colour given at run time; ``"sphere"``: a learned background sphere."""
     color_head: Literal["refnerf", "traditional"] = "refnerf"
     """``"refnerf"``: diffuse + tint * specular (paper); ``"traditional"``: an MLP of the trunk feature
     and the positional encoding of the view direction (the paper's ablation baseline)."""
 
     def __post_init__(self):
-        if self.background not in ("constant", "sphere"):
-            raise ValueError(f"background must be 'constant' or 'sphere', got {self.background!r}")
+        if self.background_model not in ("constant", "sphere"):
+            raise ValueError(f"background_model must be 'constant' or 'sphere', got {self.background_model!r}")
         if self.color_head not in ("refnerf", "traditional"):
             raise ValueError(f"color_head must be 'refnerf' or 'traditional', got {self.color_head!r}")
         if self.color_head == "traditional" and self.specular:
@@ -283,7 +283,7 @@ def init_color_model(cfg: ShadingConfig, key: jax.Array) -> dict:
     v = jnp.zeros((1, 3)).at[:, 2].set(1.0)
     ist = jnp.eye(3)[None]
     params = {"shader": SegmentShader(cfg).init(k_shader, f, v, v, ist)["params"]}
-    if cfg.effects.background == "sphere":
+    if cfg.effects.background_model == "sphere":
         params["background"] = BackgroundSphere(cfg).init(k_bg, jnp.zeros((1, 3)), v)["params"]
     return params
 
@@ -319,7 +319,7 @@ def background_color(cfg: ShadingConfig, params: dict, origin: jax.Array, direct
     ``constant`` unused) or ``constant [3]`` broadcast (required for ``"constant"``)."""
     if not isinstance(cfg, ShadingConfig):  # a stand-in, e.g. morphing's BlendedShading
         return cfg.background_color(params, origin, direction, constant)
-    if cfg.effects.background == "sphere":
+    if cfg.effects.background_model == "sphere":
         return BackgroundSphere(cfg).apply({"params": params["background"]}, origin, direction)
     if constant is None:
         raise ValueError("a 'constant' background needs its colour: pass `constant`")

@@ -6,14 +6,14 @@ Declarable effects and their values (:data:`DECLARABLE`):
 
 * ``specular``: ``on`` (view-dependent colour: the Ref-NeRF head's tint, roughness, IDE and specular
   MLP) or ``off`` (colour from the diffuse head alone);
-* ``background``: ``constant`` (a colour given at run time: images with an alpha mask) or ``sphere``
+* ``background_model``: ``constant`` (a colour given at run time: images with an alpha mask) or ``sphere``
   (a learned background: images that hold their background).
 
-A scene folder states them in its ``scene.json`` as ``"effects": {"specular": true, "background":
-"constant"}`` (the benchmark writes it from what its ground-truth renderer does). A spec string (the
+A scene folder states them in its ``scene.json`` as ``"effects": {"specular": true,
+"background_model": "constant"}`` (the benchmark writes it from what its ground-truth renderer does). A spec string (the
 CLI's ``--effects``) is ``scene`` (the folder's declaration, else the preset's), ``auto`` (decided
 from the training split, :func:`auto_effects`), ``all`` (every effect on: ``specular=on,
-background=sphere``) or ``name=value`` pairs separated by commas, applied over the preset's.
+background_model=sphere``) or ``name=value`` pairs separated by commas, applied over the preset's.
 """
 
 from __future__ import annotations
@@ -25,11 +25,14 @@ import numpy as np
 
 from ne_jax.render.renderer import RenderConfig
 
-DECLARABLE: dict[str, tuple] = {"specular": ("on", "off"), "background": ("constant", "sphere")}
+DECLARABLE: dict[str, tuple] = {"specular": ("on", "off"), "background_model": ("constant", "sphere")}
 """Effects a scene or the command line may declare, with their values."""
 
-ALL_ON = {"specular": "on", "background": "sphere"}
+ALL_ON = {"specular": "on", "background_model": "sphere"}
 """``--effects all``: every declarable effect on."""
+
+RENAMED = {"background": "background_model"}
+"""Effect names a ``scene.json`` written by an older ne_jax may use -> their name now."""
 
 
 class EffectsError(ValueError):
@@ -49,7 +52,7 @@ def _value(name: str, value, where: str) -> str:
 
 
 def parse_effects(spec: str, where: str = "--effects") -> dict[str, str]:
-    """``"specular=off,background=sphere"`` -> ``{"specular": "off", "background": "sphere"}``."""
+    """``"specular=off,background_model=sphere"`` -> ``{"specular": "off", "background_model": "sphere"}``."""
     out = {}
     for part in (p.strip() for p in spec.split(",")):
         if not part:
@@ -72,13 +75,14 @@ def scene_effects(scene_dir) -> dict[str, str] | None:
         return None
     if not isinstance(declared, dict):
         raise EffectsError(f"{path}: expected \"effects\" to be an object of name: value, found {declared!r}")
-    return {name: _value(name, value, str(path)) for name, value in declared.items()}
+    names = {name: RENAMED.get(name, name) for name in declared}
+    return {names[name]: _value(names[name], value, str(path)) for name, value in declared.items()}
 
 
 def effects_of(render: RenderConfig) -> dict[str, str]:
     """The declarable effects of a render config, as declared values."""
     e = render.shading.effects
-    return {"specular": "on" if e.specular else "off", "background": e.background}
+    return {"specular": "on" if e.specular else "off", "background_model": e.background_model}
 
 
 def with_declared(render: RenderConfig, effects: dict[str, str]) -> RenderConfig:
@@ -86,8 +90,8 @@ def with_declared(render: RenderConfig, effects: dict[str, str]) -> RenderConfig
     changes = {}
     if "specular" in effects:
         changes["specular"] = effects["specular"] == "on"
-    if "background" in effects:
-        changes["background"] = effects["background"]
+    if "background_model" in effects:
+        changes["background_model"] = effects["background_model"]
     return render.with_effects(**changes)
 
 
@@ -97,7 +101,7 @@ def auto_effects(split, cloud_xyz: np.ndarray | None, *, opaque_share: float = 0
     """Decide the effects from a training ``split`` and a cloud near its surface (the carved
     initial cloud; ``None`` where there is none: specular then stays on). Returns ``(effects, evidence)``.
 
-    * ``background``: ``sphere`` when more than ``opaque_share`` of all pixels are opaque (alpha >=
+    * ``background_model``: ``sphere`` when more than ``opaque_share`` of all pixels are opaque (alpha >=
       0.99: the images hold their background, or the masks leave it in the foreground), else
       ``constant``.
     * ``specular``: per point (at most ``max_points``) and view that sees it (z-buffered,
@@ -117,7 +121,7 @@ def auto_effects(split, cloud_xyz: np.ndarray | None, *, opaque_share: float = 0
     alpha = split.images[..., 3]
     opaque = float((alpha >= 0.99).mean())
     evidence = {"opaque_pixels": round(opaque, 4), "opaque_share": opaque_share}
-    effects = {"background": "sphere" if opaque > opaque_share else "constant"}
+    effects = {"background_model": "sphere" if opaque > opaque_share else "constant"}
 
     if cloud_xyz is None or len(cloud_xyz) == 0:
         effects["specular"] = "on"

@@ -117,7 +117,7 @@ def _bg_image(cfg, params, camera):
 @pytest.mark.parametrize("radius,effects", [
     (0.0, {}),
     (1.0, {"ist": True}),
-    (1.6, {"specular": False, "background": "sphere"}),
+    (1.6, {"specular": False, "background_model": "sphere"}),
 ])
 def test_matches_float64_loop(radius, effects):
     cfg = _cfg(**effects)

@@ -70,7 +70,7 @@ def render(qcfg, scfg, params, scene, feats, normals, key=None):
 
 @pytest.mark.parametrize("rule,fx", [
     ("hermite", dict(ist=True)),
-    ("stochastic", dict(ist=True, background="sphere", point_normals=False)),
+    ("stochastic", dict(ist=True, background_model="sphere", point_normals=False)),
     ("spline", dict(specular=False, color_head="traditional")),
 ])
 def test_image_loss_gradients_finite(rule, fx):
@@ -91,7 +91,7 @@ def test_image_loss_gradients_finite(rule, fx):
     for leaf in jax.tree_util.tree_leaves(grads):
         assert np.all(np.isfinite(np.asarray(leaf)))
     assert np.any(np.asarray(grads[1]) != 0)  # features do reach the image
-    if fx.get("background", "constant") == "constant":
+    if fx.get("background_model", "constant") == "constant":
         np.testing.assert_array_equal(np.asarray(img.rgb)[2], [1.0, 1.0, 1.0])  # no segments
     assert float(img.opacity[2]) == 0.0
     w = np.asarray(img.weights)

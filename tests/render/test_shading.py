@@ -82,11 +82,11 @@ def test_sizes_match_design_facts():
 
 
 def test_background_sphere_params_only_when_declared():
-    p = _params(_cfg(background="sphere"))
+    p = _params(_cfg(background_model="sphere"))
     assert "background" in p
     o = jnp.zeros((5, 3))
     d = jnp.asarray(np.random.default_rng(0).normal(size=(5, 3)), jnp.float32)
-    c = np.asarray(background_color(_cfg(background="sphere"), p, o, d))
+    c = np.asarray(background_color(_cfg(background_model="sphere"), p, o, d))
     assert c.shape == (5, 3) and np.all(c >= -0.001) and np.all(c <= 1.001)
     const = background_color(_cfg(), _params(_cfg()), o, d, constant=jnp.asarray([1.0, 0.5, 0.0]))
     np.testing.assert_array_equal(np.asarray(const), np.tile([1.0, 0.5, 0.0], (5, 1)))
@@ -259,7 +259,7 @@ def test_missing_inputs_and_bad_effects_raise():
     with pytest.raises(ValueError):
         Effects(color_head="traditional")  # specular belongs to the refnerf head
     with pytest.raises(ValueError):
-        Effects(background="skybox")
+        Effects(background_model="skybox")
     # inputs an effect does not read may be None
     shade(_cfg(point_normals=False), _params(_cfg()), f, None, d)
 

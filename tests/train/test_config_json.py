@@ -16,7 +16,7 @@ def test_configs_round_trip_with_types():
 
     paper = RenderConfig(tree=KDTreeConfig(depth=21))
     for cfg in (SMALL_TCFG, SMALL_RCFG, paper,
-                RCFG.with_effects(background="sphere")):
+                RCFG.with_effects(background_model="sphere")):
         data = json.loads(json.dumps(cj.config_to_json(cfg)))
         back = cj.config_from_json(data)
         assert back == cfg and type(back) is type(cfg)
@@ -79,10 +79,12 @@ def test_a_config_stored_under_a_moved_type_name_reads_back_and_resumes():
     run = RunConfig.tiny()
     stored = json.loads(json.dumps(cj.config_to_json(run)).replace("ne_jax.train.run:", "ne_jax.train.loop:")
                         .replace("ne_jax.pointcloud.rounds:RoundConfig", "ne_jax.pointcloud.optimise:PointOptConfig")
-                        .replace('"rounds":', '"points":').replace('"round_epochs":', '"point_rounds":'))
+                        .replace('"rounds":', '"points":').replace('"round_epochs":', '"point_rounds":')
+                        .replace('"background_model":', '"background":'))
     assert stored["__type__"] == "ne_jax.train.loop:RunConfig"
     assert stored["points"]["__type__"] == "ne_jax.pointcloud.optimise:PointOptConfig"
     assert "point_rounds" in stored and "round_epochs" not in stored
+    assert stored["render"]["shading"]["effects"]["background"] == "constant"
     assert cj.config_from_json(stored) == run
     assert cj.config_diff(stored, cj.config_to_json(run)) == []
     assert cj.config_diff(stored, cj.config_to_json(run.replace(seed=1))) == ["seed: checkpoint 0, run 1"]

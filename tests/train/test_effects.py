@@ -31,27 +31,31 @@ LIKE_TINY = BenchmarkPreset("like_tiny", 64, 24, 1, 1, 1, 0.75, 2000)  # the tin
 
 
 def test_spec_parsing_and_its_errors():
-    assert parse_effects("specular=off, background=sphere") == {"specular": "off", "background": "sphere"}
+    assert parse_effects("specular=off, background_model=sphere") == {"specular": "off", "background_model": "sphere"}
     assert parse_effects("specular=false") == {"specular": "off"}
-    with pytest.raises(EffectsError, match=r"unknown effect 'shadows'; expected one of \['background', 'specular'\]"):
+    known = r"expected one of \['background_model', 'specular'\]"
+    with pytest.raises(EffectsError, match=r"unknown effect 'shadows'; " + known):
         parse_effects("shadows=on")
-    with pytest.raises(EffectsError, match=r"'background' expected one of \['constant', 'sphere'\], found 'sky'"):
-        parse_effects("background=sky")
+    with pytest.raises(EffectsError, match=r"unknown effect 'background'; " + known):  # the colour is not an effect
+        parse_effects("background=sphere")
+    with pytest.raises(EffectsError, match=r"'background_model' expected one of \['constant', 'sphere'\], found 'sky'"):
+        parse_effects("background_model=sky")
     with pytest.raises(EffectsError, match="expected name=value pairs .*found 'specular'"):
         parse_effects("specular")
 
 
 def test_scene_json_declares_and_bad_declarations_name_the_file(tmp_path):
     assert scene_effects(tmp_path) is None  # no scene.json
-    (tmp_path / "scene.json").write_text(json.dumps({"effects": {"specular": False, "background": "constant"}}))
-    assert scene_effects(tmp_path) == {"specular": "off", "background": "constant"}
+    (tmp_path / "scene.json").write_text(json.dumps({"effects": {"specular": False, "background_model": "constant"}}))
+    assert scene_effects(tmp_path) == {"specular": "off", "background_model": "constant"}
     render, record = declare_effects(TINY.render, "scene", tmp_path)
     assert not render.shading.effects.specular and record == {
-        "spec": "scene", "source": "scene.json", "effects": {"specular": "off", "background": "constant"}}
+        "spec": "scene", "source": "scene.json", "effects": {"specular": "off", "background_model": "constant"}}
     # the command line overrides; "all" turns every effect on
     render, record = declare_effects(TINY.render, "specular=on", tmp_path)
     assert render.shading.effects.specular and record["source"] == "command line"
-    assert effects_of(declare_effects(TINY.render, "all", tmp_path)[0]) == {"specular": "on", "background": "sphere"}
+    assert effects_of(declare_effects(TINY.render, "all", tmp_path)[0]) == {"specular": "on",
+                                                                            "background_model": "sphere"}
     (tmp_path / "scene.json").write_text(json.dumps({"effects": {"glitter": True}}))
     with pytest.raises(EffectsError, match=rf"{tmp_path / 'scene.json'}: unknown effect 'glitter'"):
         scene_effects(tmp_path)
@@ -78,11 +82,11 @@ def variants(tmp_path_factory):
 
 
 def test_the_benchmark_declares_what_its_renderer_does(variants):
-    assert scene_effects(variants["glossy"]) == {"specular": "on", "background": "constant"}
-    assert scene_effects(variants["glossy"] / "edits" / "bend") == {"specular": "on", "background": "constant"}
-    assert scene_effects(variants["blocks"]) == {"specular": "off", "background": "constant"}  # Lambertian only
-    assert scene_effects(variants["matte"]) == {"specular": "off", "background": "constant"}
-    assert scene_effects(variants["opaque"]) == {"specular": "on", "background": "sphere"}
+    assert scene_effects(variants["glossy"]) == {"specular": "on", "background_model": "constant"}
+    assert scene_effects(variants["glossy"] / "edits" / "bend") == {"specular": "on", "background_model": "constant"}
+    assert scene_effects(variants["blocks"]) == {"specular": "off", "background_model": "constant"}  # Lambertian only
+    assert scene_effects(variants["matte"]) == {"specular": "off", "background_model": "constant"}
+    assert scene_effects(variants["opaque"]) == {"specular": "on", "background_model": "sphere"}
     opaque = load_split(variants["opaque"], "train").images
     assert (opaque[..., 3] == 1.0).all() and (opaque[..., :3] > 0.99).all(axis=-1).mean() > 0.3  # white around
     assert get_scene("glossy", 0.4).materials[0].ks > 0  # the variant does not change the scene itself
@@ -93,13 +97,13 @@ def test_auto_decides_specular_from_the_views(variants, name, specular):
     split = load_split(variants[name], "train")
     cloud = initial_cloud(TINY.init, variants[name], Views.from_split(split))
     effects, evidence = auto_effects(split, cloud.xyz)
-    assert effects == {"specular": specular, "background": "constant"}, evidence
+    assert effects == {"specular": specular, "background_model": "constant"}, evidence
     assert evidence["specular_points"] > 1000
 
 
 def test_auto_background_from_alpha_and_no_cloud_keeps_specular(variants):
     effects, evidence = auto_effects(load_split(variants["opaque"], "train"), None)
-    assert effects == {"background": "sphere", "specular": "on"} and evidence["opaque_pixels"] == 1.0
+    assert effects == {"background_model": "sphere", "specular": "on"} and evidence["opaque_pixels"] == 1.0
     assert "carving needs alpha masks" in evidence["note"]
 
 
@@ -109,12 +113,17 @@ def test_cli_train_records_the_effects_it_used(tmp_path, capsys):
     run = tmp_path / "run"
     assert main(["train", str(scene / "blocks"), "--out", str(run), "--epochs", "1", "--steps-per-epoch", "2",
                  "--quiet", "--no-eval"]) == 0
-    assert "effects: specular=off, background=constant (scene.json)" in capsys.readouterr().out
+    assert "effects: specular=off, background_model=constant (scene.json)" in capsys.readouterr().out
     notes = json.loads((run / "metrics.json").read_text())["notes"]
     assert notes["effects"] == {"spec": "scene", "source": "scene.json",
-                                "effects": {"specular": "off", "background": "constant"}}
+                                "effects": {"specular": "off", "background_model": "constant"}}
     model = load_trained(run)  # the run's config carries it to eval and edit
     assert not model.run.render.shading.effects.specular
     assert not {"specular", "tint", "roughness", "bottleneck"} & set(model.state.params["shader"])  # no parameters
     assert main(["train", str(scene / "blocks"), "--out", str(tmp_path / "bad"), "--effects", "shine=on"]) == 2
     assert "unknown effect 'shine'" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_a_scene_json_with_the_older_effect_name_still_reads(tmp_path):
+    (tmp_path / "scene.json").write_text(json.dumps({"effects": {"specular": True, "background": "sphere"}}))
+    assert scene_effects(tmp_path) == {"specular": "on", "background_model": "sphere"}
