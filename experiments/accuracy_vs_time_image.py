@@ -129,9 +129,9 @@ def _with_levels(cfg, levels: int):
     spl = tuple(q.samples_per_level)
     if len(spl) < levels + 1:
         spl = spl + (spl[-1],) * (levels + 1 - len(spl))
-    tree = cfg.tree.replace(num_render_levels=levels)
+    tree = cfg.kdtree.replace(num_render_levels=levels)
     tree = tree.replace(knn_k=min(tree.knn_k, tree.num_candidates))
-    return cfg.replace(tree=tree, quadrature=dataclasses.replace(q, samples_per_level=spl))
+    return cfg.replace(kdtree=tree, quadrature=dataclasses.replace(q, samples_per_level=spl))
 
 
 def settings_for(own, sz: ImageSizes, capacities=None) -> list[Setting]:
@@ -142,7 +142,7 @@ def settings_for(own, sz: ImageSizes, capacities=None) -> list[Setting]:
     from ne_jax.render.quadrature import DETERMINISTIC_RULES
 
     caps = Capacities() if capacities is None else capacities
-    q, t = own.quadrature, own.tree
+    q, t = own.quadrature, own.kdtree
     spl = tuple(q.samples_per_level)
     nc = t.num_candidates
     out = [Setting("own", "own config", None, own)]
@@ -151,15 +151,15 @@ def settings_for(own, sz: ImageSizes, capacities=None) -> list[Setting]:
                            own.replace(quadrature=dataclasses.replace(q, samples_per_level=_scaled_samples(spl, f)))))
     for k in sz.ks:
         if k <= nc:
-            out.append(Setting("k", f"K={k}", k, own.replace(tree=t.replace(knn_k=k))))
+            out.append(Setting("k", f"K={k}", k, own.replace(kdtree=t.replace(knn_k=k))))
     for c in sz.candidate_scales:
         out.append(Setting("candidates", f"candidates={c * nc}", c * nc,
-                           own.replace(tree=t.replace(candidate_min=c * nc))))
+                           own.replace(kdtree=t.replace(candidate_min=c * nc))))
     for d in sz.level_deltas:
         lv = t.num_render_levels + d
         if lv >= 1:
             cfg = _with_levels(own, lv)
-            out.append(Setting("levels", f"levels={lv} (candidates {cfg.tree.num_candidates})", lv, cfg))
+            out.append(Setting("levels", f"levels={lv} (candidates {cfg.kdtree.num_candidates})", lv, cfg))
     for f in sz.frontier_scales:
         fc = max(2, int(round(caps.frontier * f)))
         first = caps.first_pass_frontier if caps.first_pass_frontier is not None and caps.first_pass_frontier < fc \
@@ -180,11 +180,11 @@ def settings_for(own, sz: ImageSizes, capacities=None) -> list[Setting]:
     if sz.joint:
         cheap_q = dataclasses.replace(q, samples_per_level=_scaled_samples(spl, 0.5))
         out.append(Setting("joint", "cheaper: s x0.5, K=4", "cheaper",
-                           own.replace(quadrature=cheap_q, tree=t.replace(knn_k=min(4, t.knn_k)))))
+                           own.replace(quadrature=cheap_q, kdtree=t.replace(knn_k=min(4, t.knn_k)))))
         rich_t = t.replace(candidate_min=2 * nc, knn_k=min(2 * t.knn_k, 2 * nc))
         rich_q = dataclasses.replace(q, samples_per_level=_scaled_samples(spl, 2.0), rule="spline")
         out.append(Setting("joint", f"richer: s x2, K={rich_t.knn_k}, candidates={rich_t.num_candidates}, spline",
-                           "richer", own.replace(tree=rich_t, quadrature=rich_q)))
+                           "richer", own.replace(kdtree=rich_t, quadrature=rich_q)))
         mid_q = dataclasses.replace(q, samples_per_level=_scaled_samples(spl, 1.5), rule="spline")
         out.append(Setting("joint", "s x1.5, spline", "s1.5+spline", own.replace(quadrature=mid_q)))
     for name in sz.presets:
@@ -192,7 +192,7 @@ def settings_for(own, sz: ImageSizes, capacities=None) -> list[Setting]:
 
         preset = get_run_preset(name)
         p = preset.render
-        cfg = own.replace(tree=p.tree, quadrature=p.quadrature, chunk=p.chunk)
+        cfg = own.replace(kdtree=p.kdtree, quadrature=p.quadrature, chunk=p.chunk)
         cap = preset.capacities.replace(segments_per_ray=caps.segments_per_ray)  # the own packing budget
         if cfg != own or cap != caps:
             out.append(Setting("preset", f"preset {name}", name, cfg, capacities=cap))
@@ -259,21 +259,21 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
     timers = {}
     for st in settings_for(own, sz, own_caps):
         caps = own_caps if st.capacities is None else st.capacities
-        skey = (st.cfg.tree, st.keep)
+        skey = (st.cfg.kdtree, st.keep)
         if skey not in scenes:
             t0 = time.perf_counter()
             pts = _kept_points(points, st.keep, sz.points_seed)
-            scene = model.scene if (st.cfg.tree == own.tree and st.keep >= 1.0) else PointScene.build(pts, st.cfg)
+            scene = model.scene if (st.cfg.kdtree == own.kdtree and st.keep >= 1.0) else PointScene.build(pts, st.cfg)
             scenes[skey] = (scene, time.perf_counter() - t0)
         scene, build_s = scenes[skey]
         scene = scene.replace(capacities=caps)
         row = {"target": name, "knob": st.knob, "label": st.label, "value": st.value, "keep": st.keep,
                "time_only": st.time_only, "samples_per_level": list(st.cfg.quadrature.samples_per_level),
-               "rule": st.cfg.quadrature.rule, "integration": st.cfg.integration, "knn_k": st.cfg.tree.knn_k,
-               "candidates": st.cfg.tree.num_candidates, "levels": st.cfg.tree.num_render_levels,
+               "rule": st.cfg.quadrature.rule, "integration": st.cfg.integration, "knn_k": st.cfg.kdtree.knn_k,
+               "candidates": st.cfg.kdtree.num_candidates, "levels": st.cfg.kdtree.num_render_levels,
                "chunk": st.cfg.chunk, "alive_points": int(np.asarray(scene.points.alive).sum()),
                "tree_depth": int(scene.tree.depth), "tree_build_s": round(build_s, 3),
-               "overflow_rays": _overflow_rays(scene, st.cfg.tree, rays0)}
+               "overflow_rays": _overflow_rays(scene, st.cfg.kdtree, rays0)}
         if (st.cfg, caps, st.keep) in done and not st.time_only:  # the same render as an earlier setting
             prev = done[(st.cfg, caps, st.keep)]
             row.update({k: prev[k] for k in ("psnr", "ssim", "lost_segments", "ms_per_image", "compile_s")})
@@ -324,7 +324,7 @@ def measure_target(name: str, model, split, sz: ImageSizes, log=print) -> dict:
 
 def _cfg_summary(cfg) -> dict:
     return {"samples_per_level": list(cfg.quadrature.samples_per_level), "rule": cfg.quadrature.rule,
-            "knn_k": cfg.tree.knn_k, "candidates": cfg.tree.num_candidates, "levels": cfg.tree.num_render_levels,
+            "knn_k": cfg.kdtree.knn_k, "candidates": cfg.kdtree.num_candidates, "levels": cfg.kdtree.num_render_levels,
             "chunk": cfg.chunk, "integration": cfg.integration, "ist": bool(cfg.shading.effects.ist)}
 
 

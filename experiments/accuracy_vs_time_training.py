@@ -95,14 +95,14 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
 
     if candidate_set not in CANDIDATE_SETS:
         raise ValueError(f"candidate_set: expected one of {CANDIDATE_SETS}, found {candidate_set!r}")
-    t, q, cap = run.render.tree, run.render.quadrature, run.capacities
+    t, q, cap = run.render.kdtree, run.render.quadrature, run.capacities
     spl = tuple(q.samples_per_level)
 
     def with_k(k, cfg=run):
         """K = ``k``; a candidate set too narrow for it is widened to ``k``."""
-        tree = cfg.render.tree
+        tree = cfg.render.kdtree
         wider = {"candidate_min": k} if k > tree.num_candidates else {}
-        return cfg.replace(render=cfg.render.replace(tree=tree.replace(knn_k=k, **wider)))
+        return cfg.replace(render=cfg.render.replace(kdtree=tree.replace(knn_k=k, **wider)))
 
     def k_label(k):
         return f"K={k}" + (f" ({k} candidates)" if k > t.num_candidates else "")
@@ -131,7 +131,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
             # walked as the paper's tree config walked before the buffer sizes left it: one pass with
             # the default frontier and slots (the preset's packing budget kept)
             paper_cap = Capacities(segments_per_ray=cap.segments_per_ray)
-            paper = run.replace(render=run.render.replace(tree=paper_tree, quadrature=paper_q), capacities=paper_cap)
+            paper = run.replace(render=run.render.replace(kdtree=paper_tree, quadrature=paper_q), capacities=paper_cap)
             levels = paper_tree.num_render_levels
             label = (f"paper sampling (K={paper_tree.knn_k}, {paper_tree.candidate_min} candidates, "
                      f"{levels} levels, s {paper_q.samples_per_level[:levels]})")
@@ -141,7 +141,7 @@ def candidates_for(run, quick: bool = False, candidate_set: str = "full") -> lis
         half = t.replace(candidate_min=t.num_candidates // 2, knn_k=min(t.knn_k, t.num_candidates // 2))
         if half.num_candidates < t.num_candidates:
             out.append(Candidate(f"{half.num_candidates} candidates (K={half.knn_k})", "candidates",
-                                 run.replace(render=run.render.replace(tree=half))))
+                                 run.replace(render=run.render.replace(kdtree=half))))
         return out + [narrow_frontier] + two_pass
     # s only downwards: part 2 found the segment integral converged at the presets' s (s x2: +0.00 dB)
     out.append(Candidate(f"s x0.5 {_scaled_samples(spl, 0.5)[:t.num_render_levels]}", "samples", with_s(0.5)))
@@ -233,7 +233,7 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
            "score_cached": score_cached, "psnr": kept["psnr"], "ssim": kept["ssim"],
            "train_s": round(result.recorded_seconds, 1), "ms_per_image": round(1e3 * best, 2),
            "compile_s": round(max(0.0, first - best), 3), "steps": int(result.state.step),
-           "batch_size": run.sampler.batch_size, "knn_k": run.render.tree.knn_k,
+           "batch_size": run.sampler.batch_size, "knn_k": run.render.kdtree.knn_k,
            "samples_per_level": list(run.render.quadrature.samples_per_level),
            "initial_points": int(result.initial.get("points", 0)),
            "final_points": int(np.asarray(result.scene.points.alive).sum()),

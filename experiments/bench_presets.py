@@ -60,7 +60,7 @@ def settings(quick: bool) -> list[tuple[str, object]]:
     one_pass = d.capacities.replace(first_pass_frontier=None)
     paper_sampling = RenderConfig()  # the paper's per-sample settings on the default preset's tree
     out[2:2] = [("default, one pass", d.replace(capacities=one_pass)),
-                ("default, paper sampling", d.replace(render=d.render.replace(tree=paper_sampling.tree,
+                ("default, paper sampling", d.replace(render=d.render.replace(kdtree=paper_sampling.kdtree,
                                                                               quadrature=paper_sampling.quadrature),
                                                       capacities=one_pass))]
     p = RunConfig.paper()
@@ -84,7 +84,7 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     scene = scene.fitted(run.render, batches[0].rays)  # the packing budget, as training fits it
     step = make_train_step(run.train, run.render)
     _, per_step, first_s, lost = timed_steps(step, state, scene, batches)
-    segs = intersect(scene.tree, batches[0].rays, run.render.tree, scene.capacities)
+    segs = intersect(scene.tree, batches[0].rays, run.render.kdtree, scene.capacities)
     found = np.asarray(segs.valid).sum(1)
     rays = run.sampler.batch_size
     cap = scene.capacities
@@ -134,7 +134,7 @@ def run_bench(run_dir: Path, scene_dir: Path | None, steps: int, repeats: int, q
         pool = build_pool(run.sampler, train_split, run.background)
         row = {"label": label, "preset": run.name, "tree_depth": int(scene.tree.depth),
                "frontier": [run.capacities.first_pass_frontier, run.capacities.frontier],
-               "knn_k": run.render.tree.knn_k, "tree_build_s": round(build_s, 2)}
+               "knn_k": run.render.kdtree.knn_k, "tree_build_s": round(build_s, 2)}
         row.update(time_steps(run, model, pool, scene, steps))
 
         cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))

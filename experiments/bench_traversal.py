@@ -114,7 +114,7 @@ def run_bench(run_dir: Path, scene_dir: Path | None, views: int, repeats: int, q
         cap = one_pass.replace(**changes)
 
         def walk(cap=cap):
-            return [intersect(tree, c, run.render.tree, cap) for c in chunks]
+            return [intersect(tree, c, run.render.kdtree, cap) for c in chunks]
 
         segs = jax.block_until_ready(walk())
         _, t_walk = best_time(lambda: jax.block_until_ready(walk()), repeats)

@@ -3,8 +3,8 @@ cameras (:mod:`ne_jax.edit.fidelity`). Two tables per model:
 
 * **motions**: rotations about three axes (two tilted) at several angles, a translation, and a
   uniform scaling (reported apart: the density's length unit does not scale with it), each edited
-  with the tree carried through the edit (``EditConfig(tree="carry")``, the default) and rebuilt
-  (``tree="rebuild"``, the paper); PSNR between the edited render from moved test cameras and the
+  with the tree carried through the edit (``EditConfig()``, the default) and rebuilt
+  (``EditConfig(rebuild_tree=True)``, the paper); PSNR between the edited render from moved test cameras and the
   unedited render;
 * **diagnosis** (``--diagnose``): one rotation edited with one stage of the pipeline held at its
   exact value, or switched, at a time: the tree (rebuilt, its spacing kept; the partition kept with
@@ -78,7 +78,7 @@ def measure_motions(model, cameras, pts, pivot, log) -> tuple[list[dict], np.nda
     for label, edit, kind in motions(pivot):
         row = {"motion": label, "kind": kind}
         for tree in ("carry", "rebuild"):
-            cfg = EditConfig(tree=tree)
+            cfg = EditConfig(rebuild_tree=tree == "rebuild")
             t0 = time.perf_counter()
             points = apply_edit(pts, edit, cfg)
             render = edited_render_config(run.render, ist=True)

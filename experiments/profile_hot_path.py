@@ -125,7 +125,7 @@ def build_inputs(quick: bool):
     mid = (IMAGE * IMAGE) // 2 - RENDER_RAYS // 2  # a chunk through the middle of the image
     render_rays = rays.take(slice(mid, mid + RENDER_RAYS))
     caps = (scene.capacities,) if new_api else ()
-    hits = np.asarray(intersect(scene.tree, rays, cfg.tree, *caps).num_segments) > 0
+    hits = np.asarray(intersect(scene.tree, rays, cfg.kdtree, *caps).num_segments) > 0
     rng = np.random.default_rng(0)
     n_hit = int(0.9 * TRAIN_RAYS)
     idx = np.concatenate([rng.choice(np.flatnonzero(hits), n_hit),
@@ -217,7 +217,7 @@ def profile_stages(repeats: int, quick: bool) -> dict:
         cfg = run.render
         sc = scene.fitted(cfg, trays) if kind == "train" else scene  # the packing budget, as training fits it
         cap = sc.capacities
-        tc = cfg.tree
+        tc = cfg.kdtree
         tree = sc.tree
         params = init_train_state(run.train, cfg, sc.points, jax.random.key(1)).params
         aux = kind == "train"

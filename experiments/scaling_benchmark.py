@@ -59,7 +59,7 @@ def worker(points: int, batch: int, res: int, repeats: int) -> dict:
     x = 0.9 * x / np.linalg.norm(x, axis=1, keepdims=True) * (1 + 0.03 * rng.normal(size=(points, 1)))
     normal = x / np.linalg.norm(x, axis=1, keepdims=True)
     tree = KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2)
-    cfg = RenderConfig(tree=tree, quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=4096)
+    cfg = RenderConfig(kdtree=tree, quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=4096)
     pts = PointState.from_numpy(x, points, cfg.shading.feature_dim, normal=normal, key=jax.random.key(0))
     scene = PointScene.build(pts, cfg, Capacities(frontier=16, max_segments=16))
     tcfg = TrainConfig(total_steps=100)

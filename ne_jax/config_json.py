@@ -66,6 +66,7 @@ MOVED_FIELDS = {
 RENAMED_FIELDS = {
     "ne_jax.train.run:RunConfig": {"points": "rounds", "point_rounds": "round_epochs"},
     "ne_jax.render.shading:Effects": {"background": "background_model"},
+    "ne_jax.render.renderer:RenderConfig": {"tree": "kdtree"},
 }
 """Fields stored under an older name -> their name now, per config type (read side only)."""
 

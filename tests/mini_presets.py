@@ -48,7 +48,7 @@ def tiny_caps(**changes) -> Capacities:
 def tiny_render(**changes) -> RenderConfig:
     """A small render config for tests and toy scenes: :func:`tiny_tree`, 4, 6, 8 samples per level,
     chunks of 1024 rays, with ``changes``."""
-    return RenderConfig(tree=tiny_tree(), quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)),
+    return RenderConfig(kdtree=tiny_tree(), quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)),
                         chunk=1024).replace(**changes)
 
 

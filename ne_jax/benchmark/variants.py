@@ -27,7 +27,7 @@ variant                     model                                               
                             carried through the edit (:mod:`ne_jax.geometry.carry`)
 ==========================  ==================================================  =====  ========
 
-Every variant but ``rebuilt_tree`` carries the trained tree through the edit (``EditConfig.tree``).
+Every variant but ``rebuilt_tree`` carries the trained tree through the edit (``EditConfig.rebuild_tree`` off).
 
 Fine-tuning Naive Plotting fine-tunes the full model without IST through the ray renderer and then
 plots it (training through the plot is not implemented).
@@ -110,7 +110,7 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("half_points", "- 50% points", _half_points, ist=True),
     Variant("no_ist_kept_normals", "w/o IST, normals not re-estimated", None, ist=False,
             edit=EditConfig(reestimate_normals=False)),
-    Variant("rebuilt_tree", "Ours, tree rebuilt (paper)", None, ist=True, edit=EditConfig(tree="rebuild")),
+    Variant("rebuilt_tree", "Ours, tree rebuilt (paper)", None, ist=True, edit=EditConfig(rebuild_tree=True)),
 )}
 """Every variant by name (Table 1's rows first, then the ablation rows)."""
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -50,23 +49,21 @@ class EditConfig:
     reestimate_normals: bool = True
     """Off: every point keeps its original normal, unrotated (an analysis switch: what the normals
     re-estimated on the edited cloud contribute; the IST is still computed from them)."""
-    tree: Literal["carry", "rebuild"] = "carry"
-    """The edited scene's K-D tree (:meth:`~ne_jax.render.renderer.PointScene.edited`): ``"carry"``
-    keeps the trained partition and candidate sets and moves the boxes with their points
-    (:mod:`ne_jax.geometry.carry`); ``"rebuild"`` builds a new tree on the edited cloud (the paper)."""
+    rebuild_tree: bool = False
+    """The edited scene's K-D tree (:meth:`~ne_jax.render.renderer.PointScene.edited`): off, the
+    trained tree is carried, its partition and candidate sets kept and its boxes moved with their
+    points (:mod:`ne_jax.geometry.carry`); on, a new tree is built on the edited cloud (the paper)."""
     tear_factor: float = 2.0
-    """``"carry"``: a subtree whose points its best similarity fit misses by more than this many
+    """Carried tree: a subtree whose points its best similarity fit misses by more than this many
     point spacings is torn (rebuilt locally on the edited positions)."""
 
     def __post_init__(self):
-        if self.tree not in ("carry", "rebuild"):
-            raise ValueError(f"EditConfig.tree: expected 'carry' or 'rebuild', found {self.tree!r}")
         if not self.tear_factor > 0:
             raise ValueError(f"EditConfig.tear_factor: expected a value > 0, found {self.tear_factor}")
 
     def scene(self, base: PointScene, points: PointState, render: RenderConfig) -> PointScene:
         """The edited scene of ``points`` (an edit of ``base.points``) with this config's tree."""
-        return base.edited(points, render, carry=self.tree == "carry", tear_factor=self.tear_factor)
+        return base.edited(points, render, carry=not self.rebuild_tree, tear_factor=self.tear_factor)
 
 
 @struct.dataclass

@@ -153,7 +153,7 @@ class EditLoss:
         deleted = np.zeros(points.capacity, bool) if deleted is None else np.asarray(deleted, bool)
         plan = plan_edit(self.edit_cfg, points, xyz, deleted)
         edited = self.scene(theta, points, EditTopology(plan=plan, tree=None))
-        tree = build_tree(np.asarray(edited.points.xyz), np.asarray(edited.points.alive), self.render_cfg.tree)
+        tree = build_tree(np.asarray(edited.points.xyz), np.asarray(edited.points.alive), self.render_cfg.kdtree)
         return EditTopology(plan=plan, tree=tree, xyz=edited.points.xyz, capacities=capacities)
 
 

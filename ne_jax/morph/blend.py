@@ -107,7 +107,7 @@ class BlendedShading:
         return (1.0 - r) * bg_a + r * bg_b
 
 
-_GEOMETRY_FIELDS = ("tree", "quadrature", "integration", "exact_knn")
+_GEOMETRY_FIELDS = ("kdtree", "quadrature", "integration", "exact_knn")
 
 
 def blended_render_config(render_a: RenderConfig, render_b: RenderConfig) -> RenderConfig:

@@ -132,7 +132,7 @@ def scan_growth(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, 
 
 def _scan(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, min_distance, min_sigma):
     tree = scene.tree
-    seg = intersect(tree, rays, cfg.tree, scene.capacities, include_grow_level=True)  # [R, M]
+    seg = intersect(tree, rays, cfg.kdtree, scene.capacities, include_grow_level=True)  # [R, M]
     level_index = (tree.depth - 1) - seg.level  # 0 = bottom rendering level, L = growing level
     t, w = level_samples(cfg.quadrature, seg.t_lo, seg.t_hi, level_index)  # [R, M, S]
     pos = rays.origin[:, None, None, :] + t[..., None] * rays.direction[:, None, None, :]

@@ -79,7 +79,7 @@ class RenderConfig:
     settings: they are :class:`~ne_jax.geometry.capacity.Capacities`, carried by the
     :class:`PointScene`."""
 
-    tree: KDTreeConfig = KDTreeConfig()
+    kdtree: KDTreeConfig = KDTreeConfig()
     """K-D tree, traversal and KNN (``knn_k``, candidate-set size)."""
 
     quadrature: QuadratureConfig = QuadratureConfig()
@@ -110,7 +110,7 @@ class RenderConfig:
         if self.integration not in INTEGRATIONS:
             raise ValueError(
                 f"RenderConfig.integration: expected one of {INTEGRATIONS}, found {self.integration!r}")
-        levels = self.tree.num_render_levels
+        levels = self.kdtree.num_render_levels
         if len(self.quadrature.samples_per_level) < levels:
             raise ValueError(
                 f"RenderConfig.quadrature.samples_per_level: expected at least {levels} entries (one per "
@@ -148,7 +148,7 @@ class PointScene:
     @classmethod
     def build(cls, points: PointState, cfg: RenderConfig, capacities: Capacities = Capacities()) -> PointScene:
         """Build the tree of ``points`` (host side) for rendering with ``cfg``."""
-        return cls(points=points, tree=build_tree(np.asarray(points.xyz), np.asarray(points.alive), cfg.tree),
+        return cls(points=points, tree=build_tree(np.asarray(points.xyz), np.asarray(points.alive), cfg.kdtree),
                    capacities=capacities)
 
     @classmethod
@@ -157,8 +157,8 @@ class PointScene:
         """The scene of ``points`` with the tree built on ``rest_xyz``/``rest_alive`` carried to them
         (:func:`~ne_jax.geometry.carry.carry_tree`; ``carry``: its keyword arguments)."""
         rest_xyz, rest_alive = np.asarray(rest_xyz), np.asarray(rest_alive)
-        tree = carry_tree(build_tree(rest_xyz, rest_alive, cfg.tree), rest_xyz, np.asarray(points.xyz),
-                          np.asarray(points.alive), cfg.tree, **carry)
+        tree = carry_tree(build_tree(rest_xyz, rest_alive, cfg.kdtree), rest_xyz, np.asarray(points.xyz),
+                          np.asarray(points.alive), cfg.kdtree, **carry)
         return cls(points=points, tree=tree, rest_xyz=jnp.asarray(rest_xyz), rest_alive=jnp.asarray(rest_alive),
                    capacities=capacities)
 
@@ -173,7 +173,7 @@ class PointScene:
         ``rays`` (a probe batch; :func:`~ne_jax.geometry.capacity.fit_packing`), never lowered."""
         if self.capacities.segments_per_ray is None:
             return self
-        mean = float(jnp.mean(intersect(self.tree, rays, cfg.tree, self.capacities).num_segments))
+        mean = float(jnp.mean(intersect(self.tree, rays, cfg.kdtree, self.capacities).num_segments))
         return self.replace(capacities=fit_packing(self.capacities, mean, headroom))
 
     def edited(self, points: PointState, cfg: RenderConfig, carry: bool = True, **carry_kw) -> PointScene:
@@ -184,7 +184,7 @@ class PointScene:
             return PointScene.build(points, cfg, self.capacities)
         if self.rest_xyz is None:  # a built tree: this scene's points are its rest
             tree = carry_tree(self.tree, np.asarray(self.points.xyz), np.asarray(points.xyz),
-                              np.asarray(points.alive), cfg.tree, **carry_kw)
+                              np.asarray(points.alive), cfg.kdtree, **carry_kw)
             return PointScene(points=points, tree=tree, rest_xyz=self.points.xyz, rest_alive=self.points.alive,
                               capacities=self.capacities)
         return PointScene.carried(self.rest_xyz, self.rest_alive, points, cfg, self.capacities, **carry_kw)
@@ -308,7 +308,7 @@ def _along(p: _Packed, t: jax.Array) -> jax.Array:
 
 def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
             aux: bool) -> tuple[RenderOut, SegmentAux | None]:
-    seg = intersect(scene.tree, rays, cfg.tree, scene.capacities)
+    seg = intersect(scene.tree, rays, cfg.kdtree, scene.capacities)
     stage_check(cfg.checks, "traversal", origin=rays.origin, direction=rays.direction)
     stage_check(cfg.checks, "traversal", where=seg.valid, t_lo=seg.t_lo, t_hi=seg.t_hi)
     p = _pack(scene, rays, seg)

@@ -90,7 +90,7 @@ def shade_segments(cfg, params, scene, pos: jax.Array, node: jax.Array, weight: 
     and quadrature fused, then one shading per segment. ``cfg``: a
     :class:`~ne_jax.render.renderer.RenderConfig`; ``scene``: a :class:`~ne_jax.render.renderer.PointScene`."""
     values = values_needed(scene.points, cfg.shading.effects, aux)
-    means = knn_integrate(scene.points, scene.tree, pos, node, weight, values, cfg.tree, cfg.exact_knn)
+    means = knn_integrate(scene.points, scene.tree, pos, node, weight, values, cfg.kdtree, cfg.exact_knn)
     return _shade(cfg, params, means, view_dir)
 
 
@@ -100,7 +100,7 @@ def shade_samples(cfg, params, scene, pos: jax.Array, node: jax.Array, view_dir:
     ``node [...]`` seen along ``view_dir [..., 3]``, each shaded on its own (``[..., S]``), with the
     distance to each sample's nearest neighbour."""
     values = values_needed(scene.points, cfg.shading.effects, aux)
-    vals, nb = knn_interpolate(scene.points, scene.tree, pos, node, cfg.tree, cfg.exact_knn, values)
+    vals, nb = knn_interpolate(scene.points, scene.tree, pos, node, cfg.kdtree, cfg.exact_knn, values)
     nearest = jnp.min(jnp.where(nb.valid, nb.dist, jnp.inf), axis=-1)
     return _shade(cfg, params, vals, jnp.broadcast_to(view_dir[..., None, :], pos.shape), nearest)
 

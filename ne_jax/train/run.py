@@ -58,8 +58,8 @@ class RunConfig:
     length is kept only when asked for: ``replace(train=...)`` with another ``total_steps``, or a
     config built with one (``RunConfig(...)`` without :meth:`with_schedule`)."""
 
-    name: str = "default"
-    """Preset name (informational)."""
+    name: str = "custom"
+    """Preset name (informational; a config built by hand is ``"custom"``, not the ``default`` preset)."""
     render: RenderConfig = RenderConfig()
     train: TrainConfig = TrainConfig()
     sampler: SamplerConfig = SamplerConfig()
@@ -129,7 +129,7 @@ class RunConfig:
         """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
         of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
         over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3)."""
-        render = RenderConfig(tree=KDTreeConfig(candidate_min=16, knn_k=16, num_render_levels=2),
+        render = RenderConfig(kdtree=KDTreeConfig(candidate_min=16, knn_k=16, num_render_levels=2),
                               quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)), chunk=1024)
         base = cls(name="tiny", render=render, capacities=Capacities(frontier=32, max_segments=32),
                    sampler=SamplerConfig(batch_size=1024),
@@ -145,7 +145,7 @@ class RunConfig:
         docs/studies/accuracy_vs_time.md). The tree is walked in two passes, 16 nodes wide and then
         64 for at most a quarter of the rays: on the benchmark's glossy scene this trains the same model bit for
         bit as one 64-wide pass, in 0.885x the time."""
-        render = RenderConfig(tree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2),
+        render = RenderConfig(kdtree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2),
                               quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)))
         base = cls(name="default", render=render, capacities=Capacities(first_pass_frontier=16, retry_share=0.25),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
@@ -159,7 +159,7 @@ class RunConfig:
         epochs 4-12 (a GPU-sized run). 64 segment slots a ray: at 21 levels a ray finds more, smaller
         voxels (with 32, 1.9% of a training batch's rays on the benchmark's glossy cloud filled every
         slot)."""
-        base = cls(name="paper", render=RenderConfig(tree=KDTreeConfig(depth=21)),
+        base = cls(name="paper", render=RenderConfig(kdtree=KDTreeConfig(depth=21)),
                    capacities=Capacities(max_segments=64),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
                    sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),

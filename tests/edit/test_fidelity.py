@@ -69,7 +69,7 @@ def test_carried_tree_renders_rigid_motions_equivariantly(model, axis, angle):
     ref = None
     got = {}
     for tree in ("carry", "rebuild"):
-        cfg = EditConfig(tree=tree)
+        cfg = EditConfig(rebuild_tree=tree == "rebuild")
         points = apply_edit(scene.points, edit, cfg)
         res = equivariance(CFG, params, scene, render, cfg.scene(scene, points, render), edit.matrix, cams,
                            (1.0, 1.0, 1.0), NEAR, FAR, reference=ref)

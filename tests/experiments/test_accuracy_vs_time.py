@@ -346,18 +346,18 @@ def test_training_candidates_change_one_knob():
     keys = [tr.run_key(c.run) for c in cands]
     assert len(set(keys)) == len(keys)  # every candidate trains its own model, in its own run directory
     by = {c.label: c.run for c in cands}
-    k_half = by[f"K={own.render.tree.knn_k // 2}"]
+    k_half = by[f"K={own.render.kdtree.knn_k // 2}"]
     assert k_half.replace(render=own.render) == own
-    assert k_half.render.tree.replace(knn_k=own.render.tree.knn_k) == own.render.tree
+    assert k_half.render.kdtree.replace(knn_k=own.render.kdtree.knn_k) == own.render.kdtree
     # 2K beyond the candidate set widens the set to 2K (the preset's K = 16 fills its 16 candidates)
-    k, n = own.render.tree.knn_k, own.render.tree.num_candidates
+    k, n = own.render.kdtree.knn_k, own.render.kdtree.num_candidates
     assert 2 * k > n
     for label in (f"K={2 * k} ({2 * k} candidates)", f"K={2 * k} ({2 * k} candidates), s x0.5"):
-        assert by[label].render.tree.knn_k == 2 * k and by[label].render.tree.num_candidates == 2 * k
-    narrow = own.replace(render=own.render.replace(tree=own.render.tree.replace(knn_k=4)))  # 2K fits: no widening
+        assert by[label].render.kdtree.knn_k == 2 * k and by[label].render.kdtree.num_candidates == 2 * k
+    narrow = own.replace(render=own.render.replace(kdtree=own.render.kdtree.replace(knn_k=4)))  # 2K fits: no widening
     labels = {c.label: c.run for c in tr.candidates_for(narrow)}
     assert {"K=8", "K=8, s x0.5", "K=8, s x0.5, steps x0.5"} <= set(labels)
-    assert labels["K=8"].render.tree.replace(knn_k=4) == narrow.render.tree
+    assert labels["K=8"].render.kdtree.replace(knn_k=4) == narrow.render.kdtree
     half = by["steps x0.5"]
     assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.train.total_steps == half.total_steps
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
@@ -385,7 +385,7 @@ def test_short_candidates_for_hour_long_presets():
     assert own.capacities.first_pass_frontier == 16 and own.capacities.retry_share == tr.TWO_PASS_SHARE
     assert [c.knob for c in cands] == ["own", "seed", "k", "k", "steps", "paper", "paper", "candidates", "frontier"]
     paper, paper_short = cands[5].run, cands[6].run
-    half = cands[7].run.render.tree
+    half = cands[7].run.render.kdtree
     assert (half.num_candidates, half.knn_k) == (16, 16) and cands[7].label == "16 candidates (K=16)"
     assert cands[7].run.replace(render=own.render) == own  # only the candidate set changes
     one_pass = own.capacities.replace(first_pass_frontier=None)
@@ -396,7 +396,7 @@ def test_short_candidates_for_hour_long_presets():
     again = tr.candidates_for(single, candidate_set="short")
     assert [c.knob for c in again][-2:] == ["frontier", "two-pass"]
     assert again[-1].run.capacities == own.capacities and again[-1].run.replace(capacities=one_pass) == single
-    assert paper.render.tree == KDTreeConfig() and paper.render.quadrature == QuadratureConfig()
+    assert paper.render.kdtree == KDTreeConfig() and paper.render.quadrature == QuadratureConfig()
     # only the per-sample settings change; the walk is the one the paper's tree config had (one pass)
     assert paper.replace(render=own.render, capacities=own.capacities) == own
     assert paper.capacities == Capacities(segments_per_ray=own.capacities.segments_per_ray)

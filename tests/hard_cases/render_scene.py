@@ -26,7 +26,7 @@ from ne_jax.render.renderer import PointScene, RenderConfig, render_rays
 from ne_jax.render.shading import init_color_model
 
 # tests/mini_presets.tiny_render at depth 8, spelled out: this file also runs as a script in a subprocess
-CFG = RenderConfig(tree=KDTreeConfig(depth=8, candidate_min=16, knn_k=8, num_render_levels=2),
+CFG = RenderConfig(kdtree=KDTreeConfig(depth=8, candidate_min=16, knn_k=8, num_render_levels=2),
                    quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=1024)
 CAPS = Capacities(frontier=64, max_segments=48, segments_per_ray=None)
 CAPACITY, N_POINTS, N_RAYS = 256, 200, 64

@@ -144,7 +144,7 @@ def test_unequal_clouds_keep_the_most_confident_points_of_the_larger(models):
 
 def test_models_rendered_differently_and_bad_clouds_are_refused(models):
     a, b = models
-    other = a.run.render.replace(tree=a.run.render.tree.replace(knn_k=4))
+    other = a.run.render.replace(kdtree=a.run.render.kdtree.replace(knn_k=4))
     with pytest.raises(ValueError, match="same traversal and integration.*tree"):
         blended_render_config(a.run.render, other)
     pair = pair_models(a, b)

@@ -134,7 +134,7 @@ def _reference(cfg, params, scene, rays, background):
     """Per-sample compositing in float64 with a plain loop: segments as ``intersect`` emits them,
     sample ``j`` of ``s`` at the midpoint of sub-interval ``j``, its own KNN feature and shading
     (the library's, float32), alpha ``1 - exp(-sigma L / s)`` front to back."""
-    seg = jax.device_get(intersect(scene.tree, rays, cfg.tree, scene.capacities))
+    seg = jax.device_get(intersect(scene.tree, rays, cfg.kdtree, scene.capacities))
     spacing = float(scene.tree.spacing)
     depth = int(scene.tree.depth)
     o = np.asarray(rays.origin, np.float64)
@@ -149,7 +149,7 @@ def _reference(cfg, params, scene, rays, background):
             t = lo + (np.arange(s) + 0.5) / s * (hi - lo)
             pos = o[r] + t[:, None] * d[r]
             vals, _ = knn_interpolate(scene.points, scene.tree, jnp.asarray(pos[None], jnp.float32),
-                                      jnp.asarray([seg.node[r, i]]), cfg.tree, False,
+                                      jnp.asarray([seg.node[r, i]]), cfg.kdtree, False,
                                       {"feature": scene.points.feature, "normal": scene.points.normal})
             view = jnp.broadcast_to(jnp.asarray(d[r], jnp.float32), (1, s, 3))
             sh = shade(cfg.shading, params, vals["feature"], vals["normal"], view)
@@ -212,7 +212,7 @@ def _check_against_reference(cfg, params, scene, rays, bg, ref):
     conf = np.asarray(aux.confidence)[valid]
     np.testing.assert_allclose(np.trace(np.asarray(aux.normal_moment)[valid], axis1=-2, axis2=-1), conf, atol=1e-5)
     # the sub-intervals of a segment tile it: lengths sum to the segments' lengths
-    seg = jax.device_get(intersect(scene.tree, rays, cfg.tree, scene.capacities))
+    seg = jax.device_get(intersect(scene.tree, rays, cfg.kdtree, scene.capacities))
     seg_len = np.where(seg.valid, seg.t_hi - seg.t_lo, 0.0).sum(-1) / float(scene.tree.spacing)
     np.testing.assert_allclose(np.asarray(aux.lengths).sum(-1), seg_len, rtol=1e-5, atol=1e-6)
 

@@ -40,7 +40,7 @@ from ne_jax.render.quadrature import QuadratureConfig
 from ne_jax.render.renderer import RenderConfig
 from ne_jax.train import TrainConfig, init_train_state
 
-SMALL_RCFG = RenderConfig(tree=KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2),
+SMALL_RCFG = RenderConfig(kdtree=KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2),
                           quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=1024)
 SMALL_TCFG = TrainConfig(total_steps=50)
 

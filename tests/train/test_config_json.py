@@ -14,7 +14,7 @@ def test_configs_round_trip_with_types():
     from ne_jax.geometry.kdtree import KDTreeConfig
     from ne_jax.render.renderer import RenderConfig
 
-    paper = RenderConfig(tree=KDTreeConfig(depth=21))
+    paper = RenderConfig(kdtree=KDTreeConfig(depth=21))
     for cfg in (SMALL_TCFG, SMALL_RCFG, paper,
                 RCFG.with_effects(background_model="sphere")):
         data = json.loads(json.dumps(cj.config_to_json(cfg)))
@@ -48,6 +48,7 @@ def test_a_config_with_buffer_sizes_among_its_settings_reads_back():
     run = RunConfig.default()
     old = json.loads(json.dumps(cj.config_to_json(run)))
     del old["capacities"]
+    old["render"]["tree"] = old["render"].pop("kdtree")  # the field's older name too
     old["render"]["tree"].update(frontier_capacity=64, first_pass_frontier=16, retry_share=0.25, max_segments=32)
     old["render"]["segments_per_ray"] = 8.0
     back = cj.config_from_json(old)
