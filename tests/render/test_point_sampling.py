@@ -28,7 +28,7 @@ from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
 
 from tests.mini_presets import tiny_caps, tiny_render
-from tests.render.scenes import glossy_points
+from tests.render.scenes import glossy_model
 
 RES = 16
 BG = jnp.array([1.0, 1.0, 1.0])
@@ -44,10 +44,8 @@ def _stochastic(cfg: RenderConfig) -> RenderConfig:
 
 @pytest.fixture(scope="module")
 def setup():
-    points = glossy_points()
     cfg = tiny_render(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
-    scene = PointScene.build(points, cfg, tiny_caps())
-    params = init_color_model(cfg.shading, jax.random.key(0))
+    params, scene = glossy_model(cfg)
     camera = Camera.from_fov(cameras.orbit_cameras(8)[1], RES, RES, cameras.CAMERA_ANGLE_X)
     return cfg, params, scene, camera
 

@@ -12,7 +12,6 @@ from ne_jax.data import cameras
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.capacity import Capacities
 from ne_jax.render.renderer import (
-    PointScene,
     RenderConfig,
     _render_chunk,
     render_chunked,
@@ -21,8 +20,8 @@ from ne_jax.render.renderer import (
 )
 from ne_jax.render.shading import init_color_model
 
-from tests.mini_presets import tiny_caps, tiny_render
-from tests.render.scenes import glossy_points
+from tests.mini_presets import tiny_render
+from tests.render.scenes import glossy_model
 
 RES = 24
 BG = jnp.array([1.0, 1.0, 1.0])
@@ -30,10 +29,8 @@ BG = jnp.array([1.0, 1.0, 1.0])
 
 @pytest.fixture(scope="module")
 def setup():
-    points = glossy_points()
     cfg = tiny_render()
-    scene = PointScene.build(points, cfg, tiny_caps())
-    params = init_color_model(cfg.shading, jax.random.key(0))
+    params, scene = glossy_model(cfg)
     c2w = cameras.orbit_cameras(8)[1]
     camera = Camera.from_fov(c2w, RES, RES, cameras.CAMERA_ANGLE_X)
     scene_gt = S.get_scene("glossy", 0.5)

@@ -10,21 +10,18 @@ import pytest
 from ne_jax.checks import NonFiniteError
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene
-from ne_jax.render.shading import Effects, init_color_model
+from ne_jax.render.shading import Effects
 from ne_jax.render.stage import shade_own, shade_samples, shade_segments, values_needed
 
-from tests.mini_presets import tiny_caps, tiny_render
-from tests.render.scenes import glossy_points
+from tests.mini_presets import tiny_render
+from tests.render.scenes import glossy_model, glossy_points
 
 
 @pytest.fixture(scope="module")
 def setup():
-    points = glossy_points()
     cfg = tiny_render()
-    scene = PointScene.build(points, cfg, tiny_caps())
-    params = init_color_model(cfg.shading, jax.random.key(0))
-    alive = np.asarray(points.alive)
-    xyz = np.asarray(points.xyz)[alive]
+    params, scene = glossy_model(cfg)
+    xyz = np.asarray(scene.points.xyz)[np.asarray(scene.points.alive)]
     rng = np.random.default_rng(0)
     # segments inside leaf voxels: samples near points of the cloud, each segment in the bottom
     # rendering-level node of its first sample (found by walking down the tree)
