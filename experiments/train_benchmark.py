@@ -35,6 +35,7 @@ from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.eval import evaluate_model, save_images
 from ne_jax.pointcloud.init import Views, ground_truth_cloud
 from ne_jax.pointcloud.metrics import chamfer
+from ne_jax.provenance import commit
 from ne_jax.train.loop import initial_cloud, train
 from ne_jax.train.run import get_run_preset
 
@@ -108,6 +109,7 @@ def main(argv=None) -> None:
     run = get_run_preset(args.preset)
     if args.epochs is not None or args.steps_per_epoch is not None:
         run = run.with_schedule(args.epochs, args.steps_per_epoch)
+    started_at = commit(short=True)  # the code this process imported
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.root) if args.root else Path(tmp) / "bench"
         runs = Path(args.runs) if args.runs else Path(tmp) / "runs"
@@ -116,7 +118,8 @@ def main(argv=None) -> None:
         scenes = {}
         for name in args.scenes:
             print(f"== {name}", flush=True)
-            scenes[name] = run_scene(root / name, run, runs / name, args.progress, args.resume)
+            scenes[name] = {**run_scene(root / name, run, runs / name, args.progress, args.resume),
+                            "commit": started_at}
             print(json.dumps(scenes[name]), flush=True)
             # after every scene: a long run keeps what it has
             text = write_results(args.preset, run, scenes, args.results)
@@ -143,7 +146,8 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
                 "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it "
                 "(initial cloud, epochs with "
                 "their compiles, point-cloud rounds; summed over the sittings of a resumed run)",
-        "preset": preset, "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
+        "preset": preset, "commit": ", ".join(sorted({s.get("commit", "unknown") for s in scenes.values()})),
+        "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
         "batch_size": run.sampler.batch_size, "background": run.background,
         "scenes": scenes,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
@@ -151,7 +155,8 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
     results.mkdir(parents=True, exist_ok=True)
     atomic_write_json(results / f"train_benchmark_{preset}.json", report)
     lines = [f"Preset `{preset}`: {run.epochs} epochs x {run.steps_per_epoch} steps of {run.sampler.batch_size} "
-             f"rays; `python -m experiments.train_benchmark --preset {preset}`.", "",
+             f"rays; commit {report['commit']}, config key {report['config_key']}; "
+             f"`python -m experiments.train_benchmark --preset {preset}`.", "",
              "| scene | test PSNR (dB) | test SSIM | train time (s) | points initial -> final | "
              "Chamfer initial -> final | ratio | seen-surface Chamfer initial -> final | ratio |",
              "|---|---:|---:|---:|---|---|---:|---|---:|"]

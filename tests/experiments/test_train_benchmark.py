@@ -53,8 +53,9 @@ def test_scenes_accumulate_only_within_one_config(tmp_path):
     run = get_run_preset("tiny")
     row = {"test_psnr": 20.0, "test_ssim": 0.8, "train_seconds": 1.0, "initial_points": 1, "final_points": 1,
            "chamfer_initial": 0.1, "chamfer_final": 0.1, "chamfer_ratio": 1.0}
-    tb.write_results("tiny", run, {"cup": row}, tmp_path)
+    tb.write_results("tiny", run, {"cup": {**row, "commit": "abc1234"}}, tmp_path)
     assert set(tb._earlier_scenes("tiny", run, tmp_path)) == {"cup"}
+    assert "commit abc1234, config key " in (tmp_path / "train_benchmark_tiny.md").read_text()
     other = run.replace(seed=run.seed + 1)
     assert tb._earlier_scenes("tiny", other, tmp_path) == {}  # another config starts a new table
     tb.write_results("tiny", other, {"stool": row}, tmp_path)
