@@ -147,11 +147,15 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
             zero_cache: Path) -> tuple[dict, np.ndarray]:
     """One record: edit ``model`` for variant ``v``, score zero-shot (or read the score back from
     ``zero_cache``, a ``--no-finetune`` record of the same edit and variant), fine-tune (shared by
-    variants with the same model and IST setting through ``finetuned``) and score again."""
+    variants with the same model and IST setting through ``finetuned``) and score again. The edit is
+    made only when something reads it."""
     t0 = time.perf_counter()
-    edited, rep = edit_model(model, benchmark_edit(model.scene_dir, edit)[0], ist=v.ist, cfg=v.edit, scene_dir=truth,
-                             label=edit)
-    if zero_cache.with_suffix(".json").is_file():
+    key = (model.run.name, v.ist, v.edit)  # Naive Plotting plots the fine-tuned model without IST
+    scored = zero_cache.with_suffix(".json").is_file()
+    if not scored or (not args.no_finetune and key not in finetuned):  # else nothing reads the edit
+        edited, rep = edit_model(model, benchmark_edit(model.scene_dir, edit)[0], ist=v.ist, cfg=v.edit,
+                                 scene_dir=truth, label=edit)
+    if scored:
         rec = json.loads(zero_cache.with_suffix(".json").read_text(encoding="utf-8"))
         image = np.load(zero_cache.with_suffix(".npy"))
     else:
@@ -160,7 +164,6 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
                "edit_report": {k: rep[k] for k in ("moved", "deleted", "good", "filled", "identity")},
                "zero_shot_seconds": round(time.perf_counter() - t0, 1)}
     if not args.no_finetune:
-        key = (model.run.name, v.ist, v.edit)  # Naive Plotting plots the fine-tuned model without IST
         t0 = time.perf_counter()
         if key not in finetuned:
             changed = "".join(  # the edit settings that differ from the default, one folder each
