@@ -170,7 +170,9 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
                 f"-{f.name}={val if isinstance(val, (bool, int, float, str)) else zlib.crc32(repr(val).encode())}"
                 for f in dataclasses.fields(v.edit)
                 if (val := getattr(v.edit, f.name)) != getattr(EditConfig(), f.name))
-            ft_dir = runs / scene / "finetune" / edit / f"{model.run.name}-{'ist' if v.ist else 'noist'}{changed}"
+            steps = args.finetune_steps or model.run.steps_per_epoch  # a folder per fine-tuning length
+            ft_dir = (runs / scene / "finetune" / edit
+                      / f"{model.run.name}-{'ist' if v.ist else 'noist'}{changed}-ft{args.finetune_epochs}x{steps}")
             finetuned[key] = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
                                       progress=False, log=lambda s: None)
         rec["finetune"] = score(finetuned[key], v, truth)[0]
