@@ -5,17 +5,13 @@ features, and the point normals and ISTs only when an effect reads them; with ``
 training losses read, the confidence and the normal moment) by one of three lookups, and are then
 shaded by the colour model (:func:`~ne_jax.render.shading.shade`, with the checks of both steps):
 
-=====================  ==========================================  ===============================
-lookup                 values                                      used by
-=====================  ==========================================  ===============================
-``integrate``          quadrature of the KNN-interpolated values   the renderer (one shaded value
-                       over each segment's samples                 per segment)
-                       (:func:`~ne_jax.geometry.knn.knn_integrate`)
-``interpolate``        KNN-interpolated per sample                 traditional sampling
-                       (:func:`~ne_jax.geometry.knn.knn_interpolate`) (``integration="samples"``),
-                                                                   the growth scan
-``own``                each point's own values                     Naive Plotting
-=====================  ==========================================  ===============================
+* ``integrate`` (:func:`shade_segments`): the quadrature of the KNN-interpolated values over each
+  segment's samples (:func:`~ne_jax.geometry.knn.knn_integrate`), one shaded value per segment; the
+  renderer;
+* ``interpolate`` (:func:`shade_samples`): the KNN-interpolated values per sample
+  (:func:`~ne_jax.geometry.knn.knn_interpolate`), each sample shaded on its own; traditional
+  sampling (``integration="samples"``) and the growth scan;
+* ``own`` (:func:`shade_own`): each point's own values; Naive Plotting.
 
 What a strategy loses to the scene's capacities happens before this stage (traversal and segment
 packing, :class:`~ne_jax.geometry.capacity.Lost`) and is reported by the strategy: the lookups

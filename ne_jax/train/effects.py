@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ne_jax.config_json import RENAMED_FIELDS
 from ne_jax.render.renderer import RenderConfig
 
 DECLARABLE: dict[str, tuple] = {"specular": ("on", "off"), "background_model": ("constant", "sphere")}
@@ -31,8 +32,9 @@ DECLARABLE: dict[str, tuple] = {"specular": ("on", "off"), "background_model": (
 ALL_ON = {"specular": "on", "background_model": "sphere"}
 """``--effects all``: every declarable effect on."""
 
-RENAMED = {"background": "background_model"}
-"""Effect names a ``scene.json`` written by an older ne_jax may use -> their name now."""
+RENAMED = RENAMED_FIELDS["ne_jax.render.shading:Effects"]
+"""Effect names a ``scene.json`` written by an older ne_jax may use -> their name now (the declarable
+effects are named as their :class:`~ne_jax.render.shading.Effects` fields)."""
 
 
 class EffectsError(ValueError):
