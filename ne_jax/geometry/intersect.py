@@ -101,14 +101,28 @@ def slab_intersect(lo, hi, origin, inv_dir, parallel, near, far, min_len):
     see :func:`_parallel_and_inverse`). Returns
     ``(t_lo, t_hi, hit)`` with ``t_lo = max(enter, near)``, ``t_hi = min(exit, far)`` and
     ``hit = t_lo + min_len < t_hi``. Never NaN; gradients finite (see the module docstring)."""
-    t1 = (lo - origin) * inv_dir
-    t2 = (hi - origin) * inv_dir
-    inside = (lo <= origin) & (origin <= hi)
-    big = jnp.asarray(jnp.inf, t1.dtype)
-    tmin = jnp.where(parallel, jnp.where(inside, -big, big), jnp.minimum(t1, t2))
-    tmax = jnp.where(parallel, jnp.where(inside, big, -big), jnp.maximum(t1, t2))
-    enter = jnp.max(tmin, axis=-1)
-    exit_ = jnp.min(tmax, axis=-1)
+    return _slab_axes(_axes(lo), _axes(hi), _axes(origin), _axes(inv_dir), _axes(parallel), near, far, min_len)
+
+
+def _axes(a):
+    """``(a[..., 0], a[..., 1], a[..., 2])``."""
+    return tuple(a[..., k] for k in range(3))
+
+
+def _slab_axes(lo, hi, origin, inv_dir, parallel, near, far, min_len):
+    """:func:`slab_intersect` with the boxes and the ray given per axis (tuples of three arrays):
+    elementwise code only. XLA:CPU does not vectorise arithmetic over a minor axis of size 3; per
+    axis the traversal runs several times faster (``experiments/bench_traversal.py``)."""
+    enter = exit_ = None
+    for lo_a, hi_a, o, inv, par in zip(lo, hi, origin, inv_dir, parallel):
+        t1 = (lo_a - o) * inv
+        t2 = (hi_a - o) * inv
+        inside = (lo_a <= o) & (o <= hi_a)
+        big = jnp.asarray(jnp.inf, t1.dtype)
+        tmin = jnp.where(par, jnp.where(inside, -big, big), jnp.minimum(t1, t2))
+        tmax = jnp.where(par, jnp.where(inside, big, -big), jnp.maximum(t1, t2))
+        enter = tmin if enter is None else jnp.maximum(enter, tmin)
+        exit_ = tmax if exit_ is None else jnp.minimum(exit_, tmax)
     t_lo = jnp.maximum(enter, near)
     t_hi = jnp.minimum(exit_, far)
     return t_lo, t_hi, t_lo + min_len < t_hi
@@ -125,10 +139,19 @@ def _parallel_and_inverse(direction):
     return par, inv
 
 
+def _prefix_count(mask):
+    """``cumsum(mask)`` of a bool vector ``[n]`` as int32, by a product with a triangular matrix of
+    ones (exact in float32 below 2**24): XLA:CPU's ``cumsum`` (a reduce-window) costs several times
+    more at these widths."""
+    n = mask.shape[-1]
+    tri = jnp.triu(jnp.ones((n, n), jnp.float32))
+    return jnp.dot(mask.astype(jnp.float32), tri, precision=lax.Precision.HIGHEST).astype(jnp.int32)
+
+
 def _compact(mask, values, capacity):
     """Move the entries of ``values`` (tuple of ``[n, ...]`` arrays) where ``mask [n]`` to the front
     of ``capacity`` slots (stable). Returns ``(compacted, kept_mask, total)``."""
-    pos = jnp.cumsum(mask.astype(jnp.int32)) - 1
+    pos = _prefix_count(mask) - 1
     target = jnp.where(mask & (pos < capacity), pos, capacity)
     out = tuple(jnp.zeros((capacity + 1,) + v.shape[1:], v.dtype).at[target].set(v)[:capacity] for v in values)
     total = jnp.sum(mask, dtype=jnp.int32)  # int32 under x64 too (scan carry)
@@ -158,9 +181,12 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
     # is mapped once per frontier node entering that level, and its children inherit it.
     frame_level = tree.frame_level if tree.has_frames else depth
 
-    def test(lo, hi, ray):
+    lo_axes, hi_axes = _axes(tree.lo), _axes(tree.hi)  # per-axis tables: see _slab_axes
+
+    def test(node, ray):
         o, i, p = ray
-        return slab_intersect(lo, hi, o, i, p, near, far, min_len)
+        return _slab_axes(tuple(a[node] for a in lo_axes), tuple(a[node] for a in hi_axes),
+                          _axes(o), _axes(i), _axes(p), near, far, min_len)
 
     def kids_in_world(kids, ray):  # -> (the ray each kid's box is tested with, what the frontier keeps)
         return world, None
@@ -175,15 +201,16 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
 
     root = jnp.zeros((), jnp.int32)
     root_ray = _ray_in_frame(tree, root, origin, direction) if frame_level == 0 else world
-    r_lo, r_hi, r_hit = test(tree.lo[0], tree.hi[0], root_ray)
+    r_lo, r_hi, r_hit = test(root, root_ray)
     r_hit = r_hit & (tree.count[0] > 0)
-    slot0 = jnp.arange(f_cap) == 0
+    # The frontier starts as the root alone and doubles per level until it is f_cap wide: a level
+    # of at most f_cap nodes keeps every kid (dead ones masked), with no compaction.
     front = (
-        jnp.zeros((f_cap,), jnp.int32),
-        jnp.where(slot0, r_lo, 0).astype(dtype),
-        jnp.where(slot0, r_hi, 0).astype(dtype),
-        slot0 & r_hit,
-        tuple(jnp.broadcast_to(r, (f_cap, 3)) for r in root_ray) if frame_level == 0 else None,
+        jnp.zeros((1,), jnp.int32),
+        r_lo[None].astype(dtype),
+        r_hi[None].astype(dtype),
+        r_hit[None],
+        tuple(r[None] for r in root_ray) if frame_level == 0 else None,
     )
     out = (
         jnp.zeros((m_cap + 1,), dtype),
@@ -194,37 +221,48 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
     zero = jnp.zeros((), jnp.int32)
 
     def emit(out, n_out, level, node, t_lo, t_hi, mask):
-        pos = n_out + jnp.cumsum(mask.astype(jnp.int32)) - 1
+        pos = n_out + _prefix_count(mask) - 1
         target = jnp.where(mask & (pos < m_cap), pos, m_cap)
         lev = jnp.full(node.shape, level, jnp.int32)
         out = tuple(o.at[target].set(v) for o, v in zip(out, (t_lo, t_hi, node, lev)))
         return out, n_out + jnp.sum(mask, dtype=jnp.int32)
 
-    def step(kid_rays, carry, level):
+    def step(kid_rays, emits, carry, level):
         (node, t_lo, t_hi, live, ray), out, n_out, f_over = carry
         kids = jnp.stack([2 * node + 1, 2 * node + 2], axis=-1)  # [F, 2]
         k_ray, keep_ray = kid_rays(kids, ray)
-        k_lo, k_hi, k_hit = test(tree.lo[kids], tree.hi[kids], k_ray)
+        k_lo, k_hi, k_hit = test(kids, k_ray)
         k_hit = k_hit & live[:, None] & (tree.count[kids] > 0)
-        leaf_parent = ~jnp.any(k_hit, axis=-1)
-        mask = live & tree.valid[node] & leaf_parent & (level >= first_emit)
-        out, n_out = emit(out, n_out, level, node, t_lo, t_hi, mask)
+        if emits:  # a rendering level (or the growing level): emit the hit nodes none of whose kids is hit
+            leaf_parent = ~jnp.any(k_hit, axis=-1)
+            mask = live & tree.valid[node] & leaf_parent
+            out, n_out = emit(out, n_out, level, node, t_lo, t_hi, mask)
         kept_rays = () if keep_ray is None else tuple(r.reshape(-1, 3) for r in keep_ray)
-        (node, t_lo, t_hi, *ray), kept, total = _compact(
-            k_hit.reshape(-1), (kids.reshape(-1), k_lo.reshape(-1), k_hi.reshape(-1), *kept_rays), f_cap
-        )
-        f_over = f_over + jnp.maximum(total - f_cap, 0)
+        values = (kids.reshape(-1), k_lo.reshape(-1), k_hi.reshape(-1), *kept_rays)
+        if kids.size <= f_cap:  # every kid fits: keep them all, in order
+            (node, t_lo, t_hi, *ray), kept = values, k_hit.reshape(-1)
+        else:
+            (node, t_lo, t_hi, *ray), kept, total = _compact(k_hit.reshape(-1), values, f_cap)
+            f_over = f_over + jnp.maximum(total - f_cap, 0)
         return ((node, t_lo, t_hi, kept, tuple(ray) if ray else None), out, n_out, f_over), None
 
     carry = (front, out, zero, zero)
-    # parents at levels [a, b) with the kids' rays of each phase
+    # Parents at levels [a, b), in runs of levels that share the kids' rays and whether they emit
+    # (the levels above the first emitting one do no emission work at all).
     for kid_rays, a, b in ((kids_in_world, 0, frame_level - 1), (kids_enter_frames, frame_level - 1, frame_level),
                            (kids_inherit_frames, frame_level, depth - 1)):
         a, b = max(a, 0), min(b, depth - 1)
-        if a < b and kid_rays is kids_enter_frames:  # one level, and the frontier gains its rays
-            carry, _ = step(kid_rays, carry, jnp.asarray(a, jnp.int32))
-        elif a < b:
-            carry, _ = lax.scan(functools.partial(step, kid_rays), carry, jnp.arange(a, b, dtype=jnp.int32))
+        for lo_, hi_, emits in ((a, min(b, first_emit), False), (max(a, first_emit), b, True)):
+            if lo_ >= hi_:
+                continue
+            body = functools.partial(step, kid_rays, emits)
+            # Levels whose frontier is still narrower than f_cap (it doubles per level, and the
+            # kids' rays join it when they enter frames) change the carry's shapes: one step each.
+            while lo_ < hi_ and (carry[0][0].shape[0] < f_cap or kid_rays is kids_enter_frames):
+                carry, _ = body(carry, jnp.asarray(lo_, jnp.int32))
+                lo_ += 1
+            if lo_ < hi_:
+                carry, _ = lax.scan(body, carry, jnp.arange(lo_, hi_, dtype=jnp.int32))
     (node, t_lo, t_hi, live, _), out, n_out, f_over = carry
     mask = live & tree.valid[node]
     out, n_out = emit(out, n_out, depth - 1, node, t_lo, t_hi, mask)
