@@ -14,9 +14,9 @@ from tests.mini_presets import tiny_tree
 from .clouds import CLOUDS
 
 
-def _setup(name, seed=0, b=40, s=6):
+def _setup(name, seed=0, b=40, s=6, candidate_min=16):
     xyz, alive = CLOUDS[name]
-    cfg = tiny_tree()
+    cfg = tiny_tree(candidate_min=candidate_min)
     rng = np.random.default_rng(seed)
     state = PointState.from_numpy(np.where(alive[:, None], xyz, 0.0).astype(np.float32), feature_dim=5)
     state = state.replace(alive=jnp.asarray(alive),
@@ -34,9 +34,11 @@ def _setup(name, seed=0, b=40, s=6):
     return state, tree, cfg, pts, node, w
 
 
+# 16 candidates: the K nearest found by ranking; 48: by lax.top_k (knn.RANK_MAX_CANDIDATES)
+@pytest.mark.parametrize("candidate_min", [16, 48])
 @pytest.mark.parametrize("name", ["sphere_700", "mostly_deleted", "one_point", "collinear"])
-def test_equals_integrated_interpolation(name):
-    state, tree, cfg, pts, node, w = _setup(name)
+def test_equals_integrated_interpolation(name, candidate_min):
+    state, tree, cfg, pts, node, w = _setup(name, candidate_min=candidate_min)
     values = {"feature": state.feature, "normal": state.normal, "ist": state.ist}
     fused = knn_integrate(state, tree, pts, node, w, values, cfg)
     interp, _ = knn_interpolate(state, tree, pts, node, cfg, False, values)
@@ -48,8 +50,32 @@ def test_equals_integrated_interpolation(name):
     assert all(np.isfinite(np.asarray(v)).all() for v in exact.values())
 
 
-def test_gradients_match_and_are_finite():
-    state, tree, cfg, pts, node, w = _setup("sphere_700")
+def test_ties_choose_the_same_neighbors_as_top_k():
+    """Samples at the centre of a cubic lattice cell (exact binary fractions): its eight corners at
+    one distance, and K = 4 of them chosen. Ranking must break ties as ``lax.top_k`` does (the lower
+    candidate slot)."""
+    g = np.arange(6, dtype=np.float32) * 0.125
+    xyz = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    cfg = tiny_tree(knn_k=4)
+    state = PointState.from_numpy(xyz, feature_dim=3)
+    rng = np.random.default_rng(0)
+    state = state.replace(feature=jnp.asarray(rng.normal(size=state.feature.shape), jnp.float32))
+    tree = build_tree(xyz, np.ones(len(xyz), bool), cfg)
+    first = tree.first_candidate_node
+    node = jnp.arange(first, first + tree.candidates.shape[0], dtype=jnp.int32)
+    cell = np.floor(0.5 * (np.asarray(tree.lo[node]) + np.asarray(tree.hi[node])) / 0.125).clip(0, 4)
+    pts = jnp.asarray((cell + 0.5) * 0.125, jnp.float32)[:, None, :]  # one sample per segment
+    d = np.sort(np.linalg.norm(xyz[np.asarray(tree.candidates)[node - first]] - np.asarray(pts), axis=-1), axis=-1)
+    assert (d[:, 3] == d[:, 4]).mean() > 0.5  # the fourth and fifth nearest tie: the choice matters
+    w = jnp.ones(pts.shape[:2], jnp.float32)
+    fused = knn_integrate(state, tree, pts, node, w, {"f": state.feature}, cfg)["f"]
+    interp, _ = knn_interpolate(state, tree, pts, node, cfg, False, {"f": state.feature})
+    np.testing.assert_allclose(np.asarray(fused), np.asarray(interp["f"][:, 0]), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("candidate_min", [16, 48])
+def test_gradients_match_and_are_finite(candidate_min):
+    state, tree, cfg, pts, node, w = _setup("sphere_700", candidate_min=candidate_min)
 
     def fused(xyz, feature, conf_logit, pts):
         st = state.replace(xyz=xyz, feature=feature, conf_logit=conf_logit)
