@@ -42,12 +42,13 @@ def _tiny_run(work: Path) -> Path:
 
 
 def _orbit(model, n: int, size: int):
-    """``n`` OpenCV ``(wxyz, position)`` cameras on a circle around the cloud, looking at its centre."""
+    """``n`` OpenCV ``(wxyz, position)`` cameras on a circle around the cloud, looking at its centre,
+    at the middle of the model's depth range (the benchmark's cameras: the object fills the view)."""
     from ne_jax.view.edits import matrix_to_quat
 
     xyz = np.asarray(model.scene.points.xyz)[np.asarray(model.scene.points.alive)]
     center = 0.5 * (xyz.min(0) + xyz.max(0))
-    radius = 2.2 * float(np.linalg.norm(xyz.max(0) - xyz.min(0)))
+    radius = 0.5 * (model.near + model.far) / np.linalg.norm([1.0, 0.5])  # the 0.5 below: elevation
     cams = []
     for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
         pos = center + radius * np.array([np.cos(a), np.sin(a), 0.5])

@@ -80,6 +80,23 @@ def test_sharded_render_equals_single_device(scene_and_rays, devices, chunk):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
 
 
+@multidevice
+def test_sharded_render_packs_each_devices_share(scene_and_rays):
+    """A chunk whose first half is a ray with 6 segments and whose second half a ray with 2, packed
+    at up to 8 segments per ray: each device's packing budget must hold its own share (a budget
+    sized for the chunk's mean, 4 per ray, loses segments on the first device)."""
+    params, scene, rays, bg = scene_and_rays
+    scene = scene.replace(capacities=scene.capacities.replace(segments_per_ray=8.0))
+    count = np.asarray(render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(1)).num_segments)
+    six, two = int(np.flatnonzero(count == 6)[0]), int(np.flatnonzero(count == 2)[0])
+    rays = rays.take(jnp.asarray([six] * 32 + [two] * 32))
+    one = render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(1))
+    many = render_chunked(CFG.replace(chunk=64), params, scene, rays, bg, mesh=ray_mesh(2))
+    assert int(many.lost.count.sum()) == 0
+    for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(many)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+
+
 def _batch(rays, bg):
     rng = np.random.default_rng(1)
     target = np.concatenate([rng.uniform(size=(rays.num_rays, 3)), np.ones((rays.num_rays, 1))], 1)

@@ -179,3 +179,21 @@ def test_rays_that_miss_everything_are_background(setup):
     out = render_rays(cfg, params, scene, rays, jnp.array([0.2, 0.4, 0.6]))
     np.testing.assert_array_equal(np.asarray(out.rgb), np.float32([[0.2, 0.4, 0.6]] * 2))
     np.testing.assert_array_equal(np.asarray(out.opacity), [0.0, 0.0])
+
+
+def test_chunked_render_equals_one_call(setup):
+    """render_chunked traverses every ray first (a narrow walk, then the overflowing rays again at
+    the full frontier) and renders only the rays with a segment, in chunks with a packing budget
+    each: it must give what one render_rays call over every ray gives, without packing, for a
+    per-ray background too."""
+    cfg, params, scene, camera, _ = setup
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
+    bg = jax.random.uniform(jax.random.key(4), (rays.num_rays, 3))
+    ref = render_rays(cfg, params, scene.replace(capacities=scene.capacities.replace(segments_per_ray=None)), rays, bg)
+    narrow = scene.replace(capacities=scene.capacities.replace(first_pass_frontier=2))  # most hit rays walk twice
+    out = render_chunked(cfg.replace(chunk=64), params, narrow, rays, bg)
+    assert int(out.lost.count.sum()) == 0 and int(ref.lost.count.sum()) == 0
+    np.testing.assert_array_equal(np.asarray(out.num_segments), np.asarray(ref.num_segments))
+    assert 0 < int((out.num_segments > 0).sum()) < rays.num_rays
+    for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
