@@ -11,8 +11,8 @@ band), its packing budget fitted as training fits it.
 
 Every stage is jitted alone on the inputs the previous stage produced and timed (best of
 ``--repeats`` after a compiling call, ``block_until_ready``): traversal (``intersect``), packing
-and sampling (segment packing, ``level_samples``), candidate gather and top-k
-(``_candidate_search``), interpolation and integration (the rest of ``knn_integrate``), the
+and sampling (segment packing, ``level_samples``), candidate gather and KNN weights
+(``_per_candidate_weights``), value gather and integration (the rest of ``knn_integrate``), the
 MLPs (``shade``), compositing (unpack + ``composite``); then the whole render of the batch, the
 render's backward pass (a VJP of ``render_rays_with_aux``, forward + backward), the whole training
 step (forward, losses, backward, Adam) and the host side (the tree rebuilt after a point round,
@@ -240,16 +240,15 @@ def profile_stages(repeats: int, quick: bool) -> dict:
         slot, live, d, pos, w, node = add("packing and sampling", kind, r, pack, seg, rays, tree.depth)
         eps = (tc.knn_eps_factor * tree.spacing).astype(jnp.float32)
         pts = sc.points
-        nb, ci, j = add("candidate gather and top-k", kind, r,
-                        lambda p, t_, x, n_: K._candidate_search(p, t_, x, n_, tc.knn_k, eps), pts, tree, pos, node)
+        pc, ci = add("candidate gather and KNN weights", kind, r,
+                     lambda p, t_, x, n_, w_: K._per_candidate_weights(p, t_, x, n_, w_, tc.knn_k, eps),
+                     pts, tree, pos, node, w)
         needed = values_needed(pts, cfg.shading.effects, aux)
 
-        def integ(nbw, ci, j, w, vals):
-            b = jnp.arange(ci.shape[0])[:, None, None]
-            pc = jnp.zeros(ci.shape, jnp.float32).at[b, j].add(w[:, :, None] * nbw)
+        def integ(pc, ci, vals):
             return {k: jnp.einsum("bc,bcd->bd", pc, v.reshape(v.shape[0], -1)[ci]) for k, v in vals.items()}
 
-        means = add("interpolation and integration", kind, r, integ, nb.weight, ci, j, w, needed)
+        means = add("value gather and integration", kind, r, integ, pc, ci, needed)
         means = {k: v.reshape((v.shape[0],) + needed[k].shape[1:]) for k, v in means.items()}
         sh = add("MLPs (shade)", kind, r, lambda p, f, nrm, dd: shade(cfg.shading, p, f, nrm, dd),
                  params, means["feature"], means.get("normal"), d)
