@@ -485,35 +485,19 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
         sel = np.concatenate([hit, np.full((-hit.size) % chunk, hit[-1])])  # padded with the last hit ray
         bar.total += sel.size // chunk
         bar.refresh()
-        count = np.asarray(jax.device_get(seg.num_segments))[sel]
-        shards = 1 if cfg.checks else mesh.size  # the checked render runs on one device
         for s in range(0, sel.size, chunk):
             idx = jnp.asarray(sel[s:s + chunk], jnp.int32)
             part, seg_part, bg = _take((padded, seg, background if per_ray_bg else None), idx)
             bg = bg if per_ray_bg else background
-            n_seg = int(count[s:s + chunk].reshape(shards, -1).sum(axis=1).max())  # each device packs its share
             o, scene = until_complete(
-                scene, lambda sc, part=part, bg=bg, seg_part=seg_part, n_seg=n_seg: _render_chunk_maybe_checked(
-                    cfg, params, _packing_for(sc, n_seg, chunk // shards), part, bg, mesh, seg_part),
+                scene, lambda sc, part=part, bg=bg, seg_part=seg_part: _render_chunk_maybe_checked(
+                    cfg, params, sc, part, bg, mesh, seg_part),
                 lambda o: o.lost.replace(frontier=jnp.zeros_like(o.lost.frontier), slots=jnp.zeros_like(o.lost.slots)),
                 max_grow)
             out = _put(out, idx, o)
             bar.update()
     bar.close()
     return jax.tree_util.tree_map(lambda a: a[:n], out)
-
-
-def _packing_for(scene: PointScene, segments: int, rays: int) -> PointScene:
-    """``scene`` with a packing budget for ``rays`` rays (a device's share of a chunk) that holds
-    ``segments`` segments: the scene's segments per ray halved while the budget still holds them (a
-    few sizes, each compiled once), never raised (what does not fit is lost, and grows the scene's
-    budget)."""
-    per_ray = scene.capacities.segments_per_ray
-    if per_ray is None:
-        return scene
-    while per_ray > 1 and per_ray / 2 * rays >= segments:
-        per_ray /= 2
-    return scene.replace(capacities=scene.capacities.replace(segments_per_ray=per_ray))
 
 
 @jax.jit
