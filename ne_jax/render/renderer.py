@@ -61,7 +61,7 @@ from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.devices import default_mesh, padded_size, shard_rays
 from ne_jax.geometry.capacity import BUFFERS, Capacities, Lost, LostCounts, fit_packing, grow
 from ne_jax.geometry.carry import carry_tree
-from ne_jax.geometry.intersect import Segments, intersect
+from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, build_tree
 from ne_jax.geometry.points import PointState
 from ne_jax.render.composite import composite
@@ -240,16 +240,14 @@ class SegmentAux:
 
 
 def render_rays(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
-                key: jax.Array | None = None, segments: Segments | None = None) -> RenderOut:
+                key: jax.Array | None = None) -> RenderOut:
     """Render ``rays`` (``[R]``) of ``scene`` with colour-model ``params``.
 
     ``background``: ``[3]`` or ``[R, 3]`` colour behind the scene (used by the ``"constant"``
     background; the ``"sphere"`` background is learned). ``key``: needed only by the stochastic
-    integration rule. ``segments``: the rays' traversal when already made (``intersect`` of these
-    rays with the scene's tree and capacities). Pure and differentiable in ``params``, the scene's
-    per-point arrays (positions through the KNN distances; the tree topology is held fixed) and
-    ``rays``."""
-    return _render(cfg, params, scene, rays, background, key, aux=False, seg=segments)[0]
+    integration rule. Pure and differentiable in ``params``, the scene's per-point arrays (positions
+    through the KNN distances; the tree topology is held fixed) and ``rays``."""
+    return _render(cfg, params, scene, rays, background, key, aux=False)[0]
 
 
 def render_rays_with_aux(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
@@ -309,9 +307,8 @@ def _along(p: _Packed, t: jax.Array) -> jax.Array:
 
 
 def _render(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background, key,
-            aux: bool, seg: Segments | None = None) -> tuple[RenderOut, SegmentAux | None]:
-    if seg is None:
-        seg = intersect(scene.tree, rays, cfg.kdtree, scene.capacities)
+            aux: bool) -> tuple[RenderOut, SegmentAux | None]:
+    seg = intersect(scene.tree, rays, cfg.kdtree, scene.capacities)
     stage_check(cfg.checks, "traversal", origin=rays.origin, direction=rays.direction)
     stage_check(cfg.checks, "traversal", where=seg.valid, t_lo=seg.t_lo, t_hi=seg.t_hi)
     p = _pack(scene, rays, seg)
@@ -375,55 +372,29 @@ def _render_samples(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ra
 
 
 @functools.partial(jax.jit, static_argnums=0, static_argnames="mesh")
-def _render_chunk(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh | None = None,
-                  segments: Segments | None = None) -> RenderOut:
+def _render_chunk(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh | None = None) -> RenderOut:
     """One chunk of rays split over ``mesh`` (default: :func:`~ne_jax.devices.default_mesh`; the
-    chunk's size a multiple of the mesh's), the scene and ``params`` replicated; ``segments``: the
-    chunk's traversal, when made already."""
+    chunk's size a multiple of the mesh's), the scene and ``params`` replicated."""
     mesh = default_mesh() if mesh is None else mesh
     bg = jnp.broadcast_to(jnp.asarray(background, rays.origin.dtype), (rays.num_rays, 3))
-
-    def render(params, scene, rays, bg, segments):
-        return render_rays(cfg, params, scene, rays, bg, segments=segments)
-
-    return shard_rays(render, mesh, num_replicated=2)(params, scene, rays, bg, segments)
+    return shard_rays(functools.partial(render_rays, cfg), mesh, num_replicated=2)(params, scene, rays, bg)
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _render_chunk_checked(cfg: RenderConfig, params, scene, rays, background, segments: Segments | None = None):
+def _render_chunk_checked(cfg: RenderConfig, params, scene, rays, background):
     """:func:`_render_chunk` under ``checkify`` (``cfg.checks`` on): ``(error, RenderOut)``."""
-    render = functools.partial(render_rays, cfg, segments=segments)
+    render = functools.partial(render_rays, cfg)
     return checkify.checkify(render, errors=checkify.user_checks)(params, scene, rays, background)
 
 
-def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh,
-                                segments: Segments | None = None) -> RenderOut:
+def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh) -> RenderOut:
     """:func:`_render_chunk`; with ``cfg.checks`` the checked one (on one device), raising
     ``NonFiniteError``."""
     if not cfg.checks:
-        return _render_chunk(cfg, params, scene, rays, background, mesh=mesh, segments=segments)
-    err, out = _render_chunk_checked(cfg, params, scene, rays, background, segments)
+        return _render_chunk(cfg, params, scene, rays, background, mesh=mesh)
+    err, out = _render_chunk_checked(cfg, params, scene, rays, background)
     throw(err)
     return out
-
-
-@functools.partial(jax.jit, static_argnums=0, static_argnames="mesh")
-def _traverse_chunk(cfg: RenderConfig, scene: PointScene, rays: Rays, mesh: Mesh) -> Segments:
-    """The traversal of one chunk of rays split over ``mesh``, the scene replicated."""
-    return shard_rays(lambda sc, r: intersect(sc.tree, r, cfg.kdtree, sc.capacities), mesh, num_replicated=1)(
-        scene, rays)
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def _empty_out(cfg: RenderConfig, params, rays: Rays, background, seg: Segments) -> RenderOut:
-    """What :func:`render_rays` gives rays without a segment (``seg``: their traversal): the
-    background, opacity, depth and normal 0."""
-    rgb = background_color(cfg.shading, params, rays.origin, rays.direction,
-                           jnp.asarray(background, rays.origin.dtype))
-    rgb = jnp.broadcast_to(rgb, rays.origin.shape).astype(rays.origin.dtype)
-    zero = jnp.zeros(rays.num_rays, rgb.dtype)
-    return RenderOut(rgb=rgb, opacity=zero, depth=zero, normal=jnp.zeros_like(rgb),
-                     num_segments=jnp.zeros(rays.num_rays, jnp.int32), lost=seg.lost())
 
 
 def until_complete(scene: PointScene, call, lost_of, max_grow: int = 4):
@@ -441,11 +412,6 @@ def until_complete(scene: PointScene, call, lost_of, max_grow: int = 4):
     return out, scene
 
 
-TRAVERSAL_CHUNKS = 16
-""":func:`render_chunked` traverses up to this many chunks of rays in one call (a traversal needs little
-memory per ray, and fewer calls wait less on the host)."""
-
-
 def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
                    progress: bool | None = None, desc: str = "render", max_grow: int = 4,
                    mesh: Mesh | None = None) -> RenderOut:
@@ -453,15 +419,10 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
     chunk is rounded up to a multiple of the mesh's size).
 
-    Two stages: every ray is traversed first (:data:`TRAVERSAL_CHUNKS` chunks per call); then only the
-    rays with a segment are rendered, in chunks of such rays, and the others get the background (what
-    :func:`render_rays` gives them, without its KNN and shading work: most rays of an image miss the
-    object).
-
-    A chunk that lost segments is traversed (or, to the packing budget, rendered) again with the
-    scene's capacities grown (:meth:`PointScene.grown`, at most ``max_grow`` times; later chunks
-    keep the grown capacities, so it compiles once more, not per chunk); what is still lost after
-    that is reported in the output's ``lost``.
+    A chunk that lost segments is rendered again with the scene's capacities grown
+    (:meth:`PointScene.grown`, at most ``max_grow`` times; later chunks keep the grown capacities,
+    so it compiles once more, not per chunk); what is still lost after that is reported in the
+    output's ``lost``.
     ``progress``: show a progress bar (default: when there are more than 8 chunks). Deterministic
     rules only (the stochastic rule is a training-time ablation: use :func:`render_rays`)."""
     if cfg.quadrature.rule == "stochastic":
@@ -475,91 +436,19 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     per_ray_bg = background.ndim == 2
     if per_ray_bg:
         background = jnp.concatenate([background, jnp.repeat(background[-1:], pad, axis=0)])
-    starts = range(0, n + pad, chunk * TRAVERSAL_CHUNKS)
-    bar = tqdm(total=len(starts), desc=desc, unit="chunk", leave=False,
-               disable=not ((n + pad) // chunk > 8 if progress is None else progress))
-    seg, scene = _traverse_all(cfg, scene, padded, chunk * TRAVERSAL_CHUNKS, chunk, mesh, max_grow, bar)
-    out = _empty_out(cfg, params, padded, background, seg)
-    hit = np.flatnonzero(np.asarray(jax.device_get((seg.num_emitted > 0) | (seg.lost().count > 0))))
-    if hit.size:
-        sel = np.concatenate([hit, np.full((-hit.size) % chunk, hit[-1])])  # padded with the last hit ray
-        bar.total += sel.size // chunk
-        bar.refresh()
-        for s in range(0, sel.size, chunk):
-            idx = jnp.asarray(sel[s:s + chunk], jnp.int32)
-            part, seg_part, bg = _take((padded, seg, background if per_ray_bg else None), idx)
-            bg = bg if per_ray_bg else background
-            o, scene = until_complete(
-                scene, lambda sc, part=part, bg=bg, seg_part=seg_part: _render_chunk_maybe_checked(
-                    cfg, params, sc, part, bg, mesh, seg_part),
-                lambda o: o.lost.replace(frontier=jnp.zeros_like(o.lost.frontier), slots=jnp.zeros_like(o.lost.slots)),
-                max_grow)
-            out = _put(out, idx, o)
-            bar.update()
-    bar.close()
-    return jax.tree_util.tree_map(lambda a: a[:n], out)
-
-
-@jax.jit
-def _take(tree, idx):
-    """The rows ``idx`` of every leaf of ``tree`` (one compilation per chunk size)."""
-    return jax.tree_util.tree_map(lambda a: a[idx], tree)
-
-
-@jax.jit
-def _put(out, idx, part):
-    """``out`` (a pytree of arrays) with rows ``idx`` replaced by ``part``'s."""
-    return jax.tree_util.tree_map(lambda a, b: a.at[idx].set(b.astype(a.dtype)), out, part)
-
-
-def _traverse_all(cfg: RenderConfig, scene: PointScene, rays: Rays, block: int, chunk: int, mesh: Mesh,
-                  max_grow: int, bar) -> tuple[Segments, PointScene]:
-    """Every ray traversed, in two walks: all rays with a narrow frontier (the capacities' first-pass
-    width, or a quarter of the frontier), in blocks of ``block`` rays; then the rays that overflowed it,
-    picked on the host (all of them, whatever their share), at the full frontier in chunks of
-    ``chunk``. A ray's segments are those of one walk at the full frontier. Capacities grow while a
-    walk loses segments; slots of walks made before the slots grew are padded to the final width."""
-    full = scene.capacities.replace(first_pass_frontier=None)
-    narrow = full.replace(frontier=scene.capacities.first_pass_frontier or max(2, full.frontier // 4))
-
-    def walk(caps, part, lost_of):  # -> segments, and the capacities they were made with
-        seg, sc = until_complete(scene.replace(capacities=caps),
-                                 lambda sc: _traverse_chunk(cfg, sc, part, mesh=mesh), lost_of, max_grow)
-        return seg, sc.capacities
-
-    def slots_lost(g):  # the narrow walk loses frontier nodes by design: only its slots may grow
-        lost = g.lost()
-        return lost.replace(frontier=jnp.zeros_like(lost.frontier))
-
-    segs = []
-    for s in range(0, rays.num_rays, block):
-        seg, narrow = walk(narrow, jax.tree_util.tree_map(operator.itemgetter(slice(s, s + block)), rays), slots_lost)
-        full = full.replace(max_segments=max(full.max_segments, narrow.max_segments))
-        segs.append(seg)
-        bar.update()
-    retry = np.flatnonzero(np.asarray(jax.device_get(jnp.concatenate([g.frontier_overflow for g in segs]) > 0)))
-    again = []
-    for s in range(0, retry.size, chunk):
-        idx = retry[s:s + chunk]
-        idx = jnp.asarray(np.concatenate([idx, np.full(chunk - idx.size, idx[-1])]), jnp.int32)
-        seg, full = walk(full, _take(rays, idx), lambda g: g.lost())
-        again.append((idx, seg))
-    m = max(g.valid.shape[1] for g in segs + [g for _, g in again])
-    seg = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *(_pad_slots(g, m) for g in segs))
-    for idx, g in again:
-        seg = _put(seg, idx, _pad_slots(g, m))
-    return seg, scene.replace(capacities=scene.capacities.replace(max_segments=full.max_segments,
-                                                                  frontier=full.frontier))
-
-
-def _pad_slots(seg: Segments, m: int) -> Segments:
-    """``seg`` with ``m`` segment slots per ray (invalid slots added as :func:`intersect` fills them)."""
-    extra = m - seg.valid.shape[1]
-    if extra == 0:
-        return seg
-    pad = lambda a, v: jnp.pad(a, ((0, 0), (0, extra)), constant_values=v)  # noqa: E731
-    return seg.replace(t_lo=pad(seg.t_lo, 0), t_hi=pad(seg.t_hi, 0), node=pad(seg.node, 0), level=pad(seg.level, -1),
-                       valid=pad(seg.valid, False))
+    starts = range(0, n + pad, chunk)
+    if progress is None:
+        progress = len(starts) > 8
+    outs = []
+    for s in tqdm(starts, desc=desc, unit="chunk", disable=not progress, leave=False):
+        sl = slice(s, s + chunk)
+        part = jax.tree_util.tree_map(operator.itemgetter(sl), padded)
+        bg = background[sl] if per_ray_bg else background
+        out, scene = until_complete(
+            scene, lambda s, part=part, bg=bg: _render_chunk_maybe_checked(cfg, params, s, part, bg, mesh),
+            lambda out: out.lost, max_grow)
+        outs.append(out)
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *outs)
 
 
 def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,

@@ -60,7 +60,8 @@ def test_view_dependence_only_for_glossy_materials(glossy):
     if glossy:
         assert np.abs(a - b).max() > 0.05
     else:
-        np.testing.assert_allclose(a, b, atol=1e-3)  # float32 hit points differ slightly
+        # float32 hit points differ slightly (up to 1.2e-3 with open3d-cpu 0.20); glossy differs by > 0.05
+        np.testing.assert_allclose(a, b, atol=3e-3)
 
 
 def test_light_shadows_darken_occluded_points():

@@ -83,8 +83,8 @@ def test_sharded_render_equals_single_device(scene_and_rays, devices, chunk):
 @multidevice
 def test_sharded_render_packs_each_devices_share(scene_and_rays):
     """A chunk whose first half is a ray with 6 segments and whose second half a ray with 2, packed
-    at 8 segments per ray: each device packs its own share of the chunk (a budget sized for the
-    chunk's mean, 4 per ray, would lose segments on the first device)."""
+    at 8 segments per ray: each device packs its own share of the chunk, nothing lost (a budget
+    sized for the chunk's mean, 4 per ray, would lose segments on the first device)."""
     params, scene, rays, bg = scene_and_rays
     scene = scene.replace(capacities=scene.capacities.replace(segments_per_ray=8.0))
     count = np.asarray(render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(1)).num_segments)

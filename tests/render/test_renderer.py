@@ -182,10 +182,9 @@ def test_rays_that_miss_everything_are_background(setup):
 
 
 def test_chunked_render_equals_one_call(setup):
-    """render_chunked traverses every ray first (a narrow walk, then the overflowing rays again at
-    the full frontier) and renders only the rays with a segment, in chunks with a packing budget
-    each: it must give what one render_rays call over every ray gives, without packing, for a
-    per-ray background too."""
+    """render_chunked (chunks of rays, a two-pass walk whose retry share grows until it fits, a
+    packing budget per chunk) must give what one render_rays call over every ray gives, without
+    packing, for a per-ray background too."""
     cfg, params, scene, camera, _ = setup
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     bg = jax.random.uniform(jax.random.key(4), (rays.num_rays, 3))
