@@ -112,7 +112,7 @@ def _axes(a):
 def _slab_axes(lo, hi, origin, inv_dir, parallel, near, far, min_len):
     """:func:`slab_intersect` with the boxes and the ray given per axis (tuples of three arrays):
     elementwise code only. XLA:CPU does not vectorise arithmetic over a minor axis of size 3; per
-    axis the traversal runs several times faster (``experiments/bench_traversal.py``)."""
+    axis it does (what the render gains: docs/studies/profile.md)."""
     enter = exit_ = None
     for lo_a, hi_a, o, inv, par in zip(lo, hi, origin, inv_dir, parallel):
         t1 = (lo_a - o) * inv
@@ -141,8 +141,8 @@ def _parallel_and_inverse(direction):
 
 def _prefix_count(mask):
     """``cumsum(mask)`` of a bool vector ``[n]`` as int32, by a product with a triangular matrix of
-    ones (exact in float32 below 2**24): XLA:CPU's ``cumsum`` (a reduce-window) costs several times
-    more at these widths."""
+    ones (exact in float32 below 2**24), a matmul where XLA:CPU lowers ``cumsum`` to a
+    reduce-window."""
     n = mask.shape[-1]
     tri = jnp.triu(jnp.ones((n, n), jnp.float32))
     return jnp.dot(mask.astype(jnp.float32), tri, precision=lax.Precision.HIGHEST).astype(jnp.int32)
@@ -151,7 +151,7 @@ def _prefix_count(mask):
 def _stable_sort_by(key, values):
     """``values`` (tuple of ``[n]`` arrays) ordered by ``key [n]``, equal keys in their order: each
     entry's rank counted (``n**2`` comparisons) and the entries moved to their ranks by masked sums,
-    which XLA:CPU vectorises: 1.7x faster than ``lax.sort`` for ``n = 32`` and four payloads."""
+    elementwise work that XLA:CPU vectorises, where ``lax.sort`` runs a comparator per pair."""
     slot = jnp.arange(key.shape[0])
     before = (key[None, :] < key[:, None]) | ((key[None, :] == key[:, None]) & (slot[None, :] < slot[:, None]))
     rank = jnp.sum(before, axis=1, dtype=jnp.int32)

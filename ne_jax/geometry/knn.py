@@ -2,7 +2,8 @@
 
 For a sample ``q`` in the voxel of node ``g``, the neighbours are the ``K`` nearest *alive* points
 among ``g``'s candidate set (the ``num_candidates`` points nearest the box centre, fixed at build
-time) — a fixed-shape gather plus ``lax.top_k``, never a sort. The weights are
+time) — a fixed-shape gather plus ``lax.top_k``, never a sort (the renderer's integration ranks the
+candidates instead, up to :data:`RANK_MAX_CANDIDATES` of them: the same neighbours). The weights are
 
     ``w_j = softmax_j( log(conf_j) - log(|q - p_j| + eps) )``,  ``eps = knn_eps_factor * spacing``,
 
