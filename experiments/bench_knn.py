@@ -59,6 +59,7 @@ def measure(kc: int, k: int, samples: int, segments: int, repeats: int) -> dict:
 
     from experiments.common import best_time
     from ne_jax.geometry import knn as K
+    from ne_jax.numerics import stable_ranks
 
     pts, tree, cfg, x, node, w = _inputs(kc, k, samples, segments)
     _, ok, d2 = jax.jit(K._candidate_distances)(pts, tree, x, node)
@@ -70,10 +71,7 @@ def measure(kc: int, k: int, samples: int, segments: int, repeats: int) -> dict:
                                              jnp.arange(key.shape[1])[None, :, None], j].set(True)
 
     def by_rank(key):
-        slot = jnp.arange(key.shape[-1])
-        other, this = key[..., None, :], key[..., :, None]
-        closer = (other < this) | ((other == this) & (slot[None, :] < slot[:, None]))
-        return jnp.sum(closer, axis=-1, dtype=jnp.int32) < k
+        return stable_ranks(key) < k
 
     sel_t, sel_r = jax.jit(by_top_k), jax.jit(by_rank)
     t_top, t_rank = best_time(lambda: sel_t(key), repeats)[1], best_time(lambda: sel_r(key), repeats)[1]
@@ -82,9 +80,7 @@ def measure(kc: int, k: int, samples: int, segments: int, repeats: int) -> dict:
     values = {"feature": pts.feature}
 
     def integrate_top_k(p, x, node, w):  # the top_k path: chosen slots, then a scatter per candidate
-        nb, ci, j = K._candidate_search(p, tree, x, node, k, eps)
-        b = jnp.arange(ci.shape[0])[:, None, None]
-        pc = jnp.zeros(ci.shape, x.dtype).at[b, j].add(w[:, :, None] * nb.weight)
+        pc, ci = K._per_candidate_weights_top_k(p, tree, x, node, w, k, eps)
         return jnp.einsum("bc,bcd->bd", pc, p.feature[ci])
 
     ref = jax.jit(integrate_top_k)

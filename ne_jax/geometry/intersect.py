@@ -50,7 +50,7 @@ from jax import lax
 from ne_jax.data.rays import Rays
 from ne_jax.geometry.capacity import Capacities, Lost, grow
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig
-from ne_jax.numerics import safe_reciprocal, tiny
+from ne_jax.numerics import safe_reciprocal, stable_ranks, tiny
 
 
 @struct.dataclass
@@ -149,13 +149,11 @@ def _prefix_count(mask):
 
 
 def _stable_sort_by(key, values):
-    """``values`` (tuple of ``[n]`` arrays) ordered by ``key [n]``, equal keys in their order: each
-    entry's rank counted (``n**2`` comparisons) and the entries moved to their ranks by masked sums,
-    elementwise work that XLA:CPU vectorises, where ``lax.sort`` runs a comparator per pair."""
+    """``values`` (tuple of ``[n]`` arrays) ordered by ``key [n]``, equal keys in their order: the
+    entries moved to their :func:`~ne_jax.numerics.stable_ranks` by masked sums, elementwise work
+    that XLA:CPU vectorises, where ``lax.sort`` runs a comparator per pair."""
     slot = jnp.arange(key.shape[0])
-    before = (key[None, :] < key[:, None]) | ((key[None, :] == key[:, None]) & (slot[None, :] < slot[:, None]))
-    rank = jnp.sum(before, axis=1, dtype=jnp.int32)
-    to = rank[None, :] == slot[:, None]  # [position, entry]
+    to = stable_ranks(key)[None, :] == slot[:, None]  # [position, entry]
     return tuple(jnp.sum(jnp.where(to, v[None, :], jnp.zeros((), v.dtype)), axis=1) for v in values)
 
 

@@ -34,7 +34,7 @@ from jax import lax
 
 from ne_jax.geometry.kdtree import KDTree, KDTreeConfig
 from ne_jax.geometry.points import PointState
-from ne_jax.numerics import safe_log, safe_norm, safe_sqrt
+from ne_jax.numerics import safe_log, safe_norm, safe_sqrt, stable_ranks
 
 
 @struct.dataclass
@@ -116,22 +116,24 @@ def _per_candidate_weights(state: PointState, tree: KDTree, points, node, sample
     """The candidate search summed for integration: ``(per_candidate [B, Kc], ci [B, Kc])``, where
     ``per_candidate[b, c] = sum_s sample_weight[b, s] * (KNN weight of sample s on candidate c)`` (0 off
     its ``k`` nearest alive candidates). Up to :data:`RANK_MAX_CANDIDATES` candidates the ``k`` nearest
-    are those with fewer than ``k`` candidates closer (ties to the lower slot, as ``lax.top_k`` breaks
-    them): ``Kc**2`` comparisons that XLA:CPU vectorises, with dense weights and no gather or scatter of
-    chosen slots (16 of 32: the selection 6-9x, the integration 1.9-2.2x faster than with ``top_k``); wider
-    sets use ``lax.top_k`` (32 of 96: ranking is 7x slower). ``experiments/bench_knn.py``."""
+    are those whose :func:`~ne_jax.numerics.stable_ranks` by distance is below ``k`` (the set
+    ``lax.top_k`` chooses), with dense weights and no gather or scatter of chosen slots (16 of 32: the
+    selection 6-9x, the integration 1.9-2.2x faster than with ``top_k``); wider sets use ``lax.top_k``
+    (32 of 96: ranking is 7x slower). ``experiments/bench_knn.py``."""
     if tree.candidates.shape[-1] > RANK_MAX_CANDIDATES:
-        nb, ci, j = _candidate_search(state, tree, points, node, k, eps)
-        b = jnp.arange(ci.shape[0])[:, None, None]
-        return jnp.zeros(ci.shape, points.dtype).at[b, j].add(sample_weight[:, :, None] * nb.weight), ci
+        return _per_candidate_weights_top_k(state, tree, points, node, sample_weight, k, eps)
     ci, ok, d2 = _candidate_distances(state, tree, points, node)
     key = jnp.where(ok[:, None, :], lax.stop_gradient(d2), jnp.inf)
-    slot = jnp.arange(key.shape[-1])
-    other, this = key[..., None, :], key[..., :, None]
-    closer = (other < this) | ((other == this) & (slot[None, :] < slot[:, None]))
-    chosen = (jnp.sum(closer, axis=-1, dtype=jnp.int32) < k) & ok[:, None, :]
+    chosen = (stable_ranks(key) < k) & ok[:, None, :]
     knn_w = knn_weights(state.conf_logit[ci][:, None, :], safe_sqrt(d2), chosen, eps)  # [B, S, Kc]
     return jnp.einsum("bs,bsc->bc", sample_weight, knn_w), ci
+
+
+def _per_candidate_weights_top_k(state: PointState, tree: KDTree, points, node, sample_weight, k: int, eps):
+    """:func:`_per_candidate_weights` through ``lax.top_k`` and a scatter of the chosen slots."""
+    nb, ci, j = _candidate_search(state, tree, points, node, k, eps)
+    b = jnp.arange(ci.shape[0])[:, None, None]
+    return jnp.zeros(ci.shape, points.dtype).at[b, j].add(sample_weight[:, :, None] * nb.weight), ci
 
 
 def _exact_neighbors(state: PointState, points, k: int, chunk: int):
