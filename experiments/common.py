@@ -79,6 +79,28 @@ def device_tag() -> str:
     return "cpu" if dev.platform == "cpu" else re.sub(r"[^a-z0-9]+", "_", dev.device_kind.lower()).strip("_")
 
 
+RENDERER_SUFFIX = {"raycast": "", "pathtrace": "_pt"}
+"""The results-name suffix of each ground-truth renderer: a training preset's results on the
+path-traced benchmark (``tiny_pt``) go to ``<stem>_tiny_pt``, next to the ray-cast ``<stem>_tiny``."""
+
+
+def benchmark_suffix(root: Path, scenes: list[str]) -> str:
+    """The results-name suffix (:data:`RENDERER_SUFFIX`) of the benchmark folder ``root``, from the
+    renderer the first of ``scenes`` with a ``scene.json`` records (a ray-cast preset records none);
+    ``""`` when no scene has one yet."""
+    import json
+
+    for name in scenes:
+        meta = Path(root) / name / "scene.json"
+        if meta.is_file():
+            renderer = json.loads(meta.read_text(encoding="utf-8"))["preset"].get("renderer", "raycast")
+            if renderer not in RENDERER_SUFFIX:
+                raise ValueError(f"{meta}: renderer {renderer!r} has no results-name suffix; expected one of "
+                                 f"{sorted(RENDERER_SUFFIX)}")
+            return RENDERER_SUFFIX[renderer]
+    return ""
+
+
 def write_results(out_dir: Path, stem: str, res: dict, md: str, echo: bool = True) -> None:
     """``<out_dir>/<stem>.json`` and ``.md``, each written whole or not at all; ``md`` printed with ``echo``.
 

@@ -4,6 +4,7 @@ zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
     python -m experiments.deform_benchmark --preset tiny --runs runs/deform          # main variants
     python -m experiments.deform_benchmark --preset tiny --runs runs/deform --variants all
     python -m experiments.deform_benchmark --scenes glossy --edits bend --no-finetune  # a quick look
+    python -m experiments.deform_benchmark --preset tiny --root BENCH/tiny_pt --runs runs/deform_pt  # path-traced
 
 For each scene: the full model and every variant that needs its own model are trained with the
 preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``: a finished run is reused), then
@@ -11,7 +12,8 @@ for each edit and variant: :func:`~ne_jax.edit.model.edit_model` (zero-shot, sco
 ground truth) and :func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` epochs on the edited
 scene's training views (scored again). Writes ``experiments/results/deform_benchmark_<preset>.json``
 and ``.md`` after every (scene, edit), and a figure grid ``deform_benchmark_<preset>.png`` (test view
-0: ground truth, then each variant zero-shot). Every record and its figure image are cached in
+0: ground truth, then each variant zero-shot); on a path-traced ``--root`` (its ``scene.json`` names
+the renderer) the name is ``deform_benchmark_<preset>_pt``. Every record and its figure image are cached in
 ``<runs>/<scene>/records/<edit>/``: a re-run, or one with more variants, measures only what is missing.
 """
 
@@ -29,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import cached_run
+from experiments.common import benchmark_suffix, cached_run
 from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.generate import generate_benchmark, get_preset
@@ -87,7 +89,8 @@ def main(argv=None) -> None:
     full = get_run_preset(args.preset)
     complete = set(MAIN_VARIANTS) <= set(names) and set(args.scenes) == set(SCENES) and args.edits is None
     tag = ("_all" if len(names) > len(MAIN_VARIANTS) else "") if complete else "_partial"
-    out_name = f"deform_benchmark_{args.preset}{tag}"
+    benchmark = args.preset + benchmark_suffix(root, args.scenes)  # <preset>_pt on the path-traced variant
+    out_name = f"deform_benchmark_{benchmark}{tag}"
     records, figure, unedited_models = [], {}, {}
     t_start = time.perf_counter()
     ft_tag = "zero" if args.no_finetune else f"ft{args.finetune_epochs}x{args.finetune_steps or full.steps_per_epoch}"
@@ -132,7 +135,8 @@ def main(argv=None) -> None:
                 ft = rec.get("finetune", {}).get("psnr", float("nan"))
                 print(f"  {edit:>12} {v.name:>22}: zero-shot {rec['zero_shot']['psnr']:.2f} dB, "
                       f"fine-tuned {ft:.2f} dB", flush=True)
-            write_results(out_name, args, full, records, variants, time.perf_counter() - t_start, unedited_models)
+            write_results(out_name, args, full, records, variants, time.perf_counter() - t_start, unedited_models,
+                          benchmark)
             write_figure(out_name, figure, variants)
     print((RESULTS / f"{out_name}.md").read_text())
 
@@ -180,11 +184,14 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
     return rec, image
 
 
-def write_results(out_name: str, args, full, records: list, variants, seconds: float, unedited: dict) -> None:
+def write_results(out_name: str, args, full, records: list, variants, seconds: float, unedited: dict,
+                  benchmark: str | None = None) -> None:
+    benchmark = benchmark or args.preset
     report = {
         "what": "edit each scene's trained models by every benchmark edit; PSNR/SSIM of the edited test views "
                 "zero-shot and after fine-tuning on the edited scene's training views",
-        "preset": args.preset, "finetune_epochs": 0 if args.no_finetune else args.finetune_epochs,
+        "preset": args.preset, "benchmark": benchmark,
+        "finetune_epochs": 0 if args.no_finetune else args.finetune_epochs,
         "finetune_steps_per_epoch": args.finetune_steps or full.steps_per_epoch,
         "training": {"epochs": full.epochs, "steps_per_epoch": full.steps_per_epoch,
                      "batch_size": full.sampler.batch_size},
@@ -195,12 +202,15 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
             f"--{k.replace('_', '-')}" + ("" if v is True else f" {' '.join(v) if isinstance(v, list) else v}")
             for k, v in vars(args).items()
             if v not in (None, False) and k not in ("runs", "root")
-            and not (k == "finetune_epochs" and args.no_finetune)) + " --runs DIR",
+            and not (k == "finetune_epochs" and args.no_finetune))
+        + ("" if benchmark == args.preset else f" --root BENCH/{benchmark}") + " --runs DIR",
     }
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / f"{out_name}.json", report)
     columns = list(dict.fromkeys((r["scene"], r["edit"]) for r in records))
-    lines = [f"Deformation benchmark, preset `{args.preset}` ({full.epochs} x {full.steps_per_epoch} training steps; "
+    on = "" if benchmark == args.preset else f" on the `{benchmark}` benchmark"
+    lines = [f"Deformation benchmark, preset `{args.preset}`{on} ({full.epochs} x {full.steps_per_epoch} "
+             f"training steps; "
              f"fine-tuning {report['finetune_epochs']} epoch(s) x {report['finetune_steps_per_epoch']} steps), "
              f"commit {report['commit']}. PSNR (dB) on the edited scenes' test views per edit, and the means of "
              f"PSNR, SSIM and LPIPS (AlexNet; lower is better); background {full.background}. The last row is the "

@@ -4,6 +4,7 @@
     python -m experiments.train_benchmark --preset default --scenes glossy --epochs 4
     python -m experiments.train_benchmark --root DIR ...                 # an existing benchmark folder
     python -m experiments.train_benchmark --preset default --root DIR --runs RUNS --resume  # continue stopped runs
+    python -m experiments.train_benchmark --preset tiny --root BENCH/tiny_pt --runs RUNS  # the path-traced variant
 
 For every scene: generate it (unless ``--root``), train with the preset's :class:`RunConfig`
 (initial cloud by visual-hull carving), evaluate the test views (full images on the run's
@@ -12,7 +13,9 @@ ground-truth surface samples (used here only as the reference), once over all sa
 with the completeness over only the samples a training camera sees (hidden surfaces, such as the
 inside of overlapping parts, cannot be recovered from images). Writes
 ``experiments/results/train_benchmark_<preset>.json`` and a Markdown table
-(``train_benchmark_<preset>.md``), printed as well. The run directories go to ``--runs``.
+(``train_benchmark_<preset>.md``), printed as well; on a path-traced ``--root`` (its ``scene.json``
+names the renderer) the name is ``train_benchmark_<preset>_pt``, so the two variants of one preset
+keep separate results. The run directories go to ``--runs``.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.common import benchmark_suffix
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.benchmark.generate import generate_benchmark, get_preset, seen_surface_samples
 from ne_jax.benchmark.scenes import SCENES
@@ -115,6 +119,7 @@ def main(argv=None) -> None:
         runs = Path(args.runs) if args.runs else Path(tmp) / "runs"
         if args.root is None:
             generate_benchmark(root, get_preset(args.preset), args.scenes)
+        benchmark = args.preset + benchmark_suffix(root, args.scenes)  # the results of a path-traced root: <preset>_pt
         scenes = {}
         for name in args.scenes:
             print(f"== {name}", flush=True)
@@ -122,22 +127,25 @@ def main(argv=None) -> None:
                             "commit": started_at}
             print(json.dumps(scenes[name]), flush=True)
             # after every scene: a long run keeps what it has
-            text = write_results(args.preset, run, scenes, args.results)
+            text = write_results(args.preset, run, scenes, args.results, name=benchmark)
     print(text)
 
 
-def _earlier_scenes(preset: str, run, results: Path) -> dict:
-    """Scenes of an earlier invocation of the same config (kept unless re-measured; a changed preset
-    starts a new table)."""
-    path = results / f"train_benchmark_{preset}.json"
+def _earlier_scenes(name: str, run, results: Path) -> dict:
+    """Scenes of an earlier invocation of the same config on the same benchmark ``name`` (kept unless
+    re-measured; a changed preset starts a new table)."""
+    path = results / f"train_benchmark_{name}.json"
     if not path.is_file():
         return {}
     old = json.loads(path.read_text())
     return old.get("scenes", {}) if old.get("config_key") == config_key(run) else {}
 
 
-def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> str:
-    scenes = {**_earlier_scenes(preset, run, results), **scenes}  # scenes run one at a time accumulate
+def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name: str | None = None) -> str:
+    """``train_benchmark_<name>.{json,md}`` in ``results``: ``name`` is the training ``preset`` on its
+    own (ray-cast) benchmark, ``<preset>_pt`` on the path-traced one."""
+    name = name or preset
+    scenes = {**_earlier_scenes(name, run, results), **scenes}  # scenes run one at a time accumulate
     report = {
         "what": "train each benchmark scene from a visual-hull carving; test PSNR/SSIM on full images; "
                 "Chamfer distance (world units, mean of both directions) of the initial and the final cloud "
@@ -146,29 +154,34 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS) -> st
                 "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it "
                 "(initial cloud, epochs with "
                 "their compiles, point-cloud rounds; summed over the sittings of a resumed run)",
-        "preset": preset, "commit": ", ".join(sorted({s.get("commit", "unknown") for s in scenes.values()})),
+        "preset": preset, "benchmark": name,
+        "commit": ", ".join(sorted({s.get("commit", "unknown") for s in scenes.values()})),
         "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
         "batch_size": run.sampler.batch_size, "background": run.background,
         "scenes": scenes,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
     }
     results.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(results / f"train_benchmark_{preset}.json", report)
+    atomic_write_json(results / f"train_benchmark_{name}.json", report)
+    rerun = f"`python -m experiments.train_benchmark --preset {preset}`"
+    if name != preset:  # a benchmark variant: its folder is an input
+        rerun = (f"on the `{name}` benchmark, `python -m experiments.train_benchmark --preset {preset} --root "
+                 f"BENCH/{name} --runs RUNS` (BENCH from `python -m experiments.make_benchmark --preset {name} "
+                 f"--out BENCH`)")
     lines = [f"Preset `{preset}`: {run.epochs} epochs x {run.steps_per_epoch} steps of {run.sampler.batch_size} "
-             f"rays; commit {report['commit']}, config key {report['config_key']}; "
-             f"`python -m experiments.train_benchmark --preset {preset}`.", "",
+             f"rays; commit {report['commit']}, config key {report['config_key']}; {rerun}.", "",
              "| scene | test PSNR (dB) | test SSIM | train time (s) | points initial -> final | "
              "Chamfer initial -> final | ratio | seen-surface Chamfer initial -> final | ratio |",
              "|---|---:|---:|---:|---|---|---:|---|---:|"]
-    for name, s in scenes.items():
+    for scene, s in scenes.items():
         seen = (f"{s['chamfer_seen_initial']:.4f} -> {s['chamfer_seen_final']:.4f} "
                 f"({100 * s['seen_share']:.0f}% seen) | {s['chamfer_seen_ratio']:.2f}"
                 if "chamfer_seen_ratio" in s else "not measured | -")
-        lines.append(f"| {name} | {s['test_psnr']:.2f} | {s['test_ssim']:.3f} | {s['train_seconds']:.0f} | "
+        lines.append(f"| {scene} | {s['test_psnr']:.2f} | {s['test_ssim']:.3f} | {s['train_seconds']:.0f} | "
                      f"{s['initial_points']} -> {s['final_points']} | {s['chamfer_initial']:.4f} -> "
                      f"{s['chamfer_final']:.4f} | {s['chamfer_ratio']:.2f} | {seen} |")
     text = "\n".join(lines) + "\n"
-    atomic_write_text(results / f"train_benchmark_{preset}.md", text)
+    atomic_write_text(results / f"train_benchmark_{name}.md", text)
     return text
 
 

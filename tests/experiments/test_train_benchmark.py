@@ -60,3 +60,33 @@ def test_scenes_accumulate_only_within_one_config(tmp_path):
     assert tb._earlier_scenes("tiny", other, tmp_path) == {}  # another config starts a new table
     tb.write_results("tiny", other, {"stool": row}, tmp_path)
     assert "| cup |" not in (tmp_path / "train_benchmark_tiny.md").read_text()
+
+
+def test_a_path_traced_root_names_its_own_results(tmp_path):
+    """Results on the path-traced benchmark go to ``train_benchmark_<preset>_pt``, apart from the
+    ray-cast ones of the same preset; a ray-cast root (its preset records no renderer) keeps the name."""
+    import json
+
+    from experiments.common import benchmark_suffix
+    from ne_jax.train.run import get_run_preset
+
+    for name, preset in (("tiny_pt", {"name": "tiny_pt", "renderer": "pathtrace", "spp": 256}),
+                         ("tiny", {"name": "tiny"})):
+        (tmp_path / name / "cup").mkdir(parents=True)
+        (tmp_path / name / "cup" / "scene.json").write_text(json.dumps({"scene": "cup", "preset": preset}))
+    assert benchmark_suffix(tmp_path / "tiny_pt", ["stool", "cup"]) == "_pt"  # the first scene present
+    assert benchmark_suffix(tmp_path / "tiny", ["cup"]) == ""
+    assert benchmark_suffix(tmp_path / "none", ["cup"]) == ""
+
+    tb = _load()
+    run = get_run_preset("tiny")
+    row = {"test_psnr": 20.0, "test_ssim": 0.8, "train_seconds": 1.0, "initial_points": 1, "final_points": 1,
+           "chamfer_initial": 0.1, "chamfer_final": 0.1, "chamfer_ratio": 1.0}
+    out = tmp_path / "out"
+    tb.write_results("tiny", run, {"cup": {**row, "commit": "abc1234"}}, out)
+    tb.write_results("tiny", run, {"stool": {**row, "commit": "abc1234"}}, out, name="tiny_pt")
+    assert set(json.loads((out / "train_benchmark_tiny.json").read_text())["scenes"]) == {"cup"}
+    pt = json.loads((out / "train_benchmark_tiny_pt.json").read_text())
+    assert set(pt["scenes"]) == {"stool"} and pt["benchmark"] == "tiny_pt" and pt["preset"] == "tiny"
+    assert "--root BENCH/tiny_pt" in (out / "train_benchmark_tiny_pt.md").read_text()
+    assert set(tb._earlier_scenes("tiny_pt", run, out)) == {"stool"}
