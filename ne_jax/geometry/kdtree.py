@@ -496,9 +496,42 @@ def _candidate_sets(xo, kd, center, nonempty, first_level, depth, kc, out_index,
     inf_bits = np.float64(np.inf).view(np.uint64)
     ngrow = 2**first_level
 
-    def query(c, k):
+    def sq_dist(c, i):  # [m, k] squared distances of the points ``i`` from ``c``, as scipy sums them
+        d2 = xs[0][i] - c[:, 0, None]
+        d2 *= d2
+        for a in (1, 2):
+            t = xs[a][i] - c[:, a, None]
+            t *= t
+            d2 += t
+        return d2
+
+    def query(c, w):
+        """The ``w`` nearest points of ``c`` in the canonical order, and their distances: scipy's
+        query, with the rows whose head (first ``kc + 1``) holds equal distances sorted again by
+        (squared distance, slot). A tie group reaching past the queried width is queried wider
+        first, so the ``kc``-th place goes to the lowest slot of its group."""
+        k = max(w, kc + 1)
         d, i = kd.query(c, k=k, workers=1)
-        return np.reshape(d, (-1, k)), np.reshape(i, (-1, k))
+        d, i = np.reshape(d, (-1, k)), np.reshape(i, (-1, k))
+        hd = d[:, : kc + 1]
+        tie = np.flatnonzero((hd[:, 1:] == hd[:, :-1]).any(axis=1))
+        if tie.size:
+            ct, dt, it = c[tie], d[tie], i[tie]
+            kk = k
+            while kk < n:
+                open_ = np.flatnonzero(np.isfinite(dt[:, kth]) & (dt[:, kth] == dt[:, -1]))
+                if open_.size == 0:
+                    break
+                kk = min(2 * kk, n)
+                dd, ii = kd.query(ct[open_], k=kk, workers=1)
+                pad = ((0, 0), (0, kk - dt.shape[1]))
+                dt, it = np.pad(dt, pad, constant_values=np.inf), np.pad(it, pad, constant_values=n)
+                dt[open_], it[open_] = np.reshape(dd, (-1, kk)), np.reshape(ii, (-1, kk))
+            d2 = sq_dist(ct, it)
+            order = np.lexsort((it, d2), axis=-1)[:, :k]
+            d[tie] = np.sqrt(np.take_along_axis(d2, order, axis=1))
+            i[tie] = np.take_along_axis(it, order, axis=1)
+        return d[:, :w], i[:, :w]
 
     def run_block(b0):
         b1 = min(b0 + _GROW_BLOCK, ngrow)
@@ -552,7 +585,8 @@ def _candidate_sets(xo, kd, center, nonempty, first_level, depth, kc, out_index,
                 near = np.flatnonzero((head[:, 1:] == head[:, :-1]).any(axis=1))
                 if near.size:  # distances equal in their top bits: order those rows exactly
                     sub = d2[near]
-                    order = np.lexsort((np.broadcast_to(np.arange(wp), sub.shape), sub), axis=-1)
+                    slot = sup[near // 2] if psup is None else psup[near]
+                    order = np.lexsort((slot, sub), axis=-1)  # the canonical order: distance, then slot
                     key[near] = np.take_along_axis(key_of(sub, wp), order, axis=1)
                 loc = (key[:, :w] & low).view(np.int64)
                 if psup is None:
