@@ -281,6 +281,13 @@ def tree_depth(num_alive: int, cfg: KDTreeConfig) -> int:
 
 def _spacing_and_limit(x: np.ndarray, kd: cKDTree, cfg: KDTreeConfig) -> tuple[float, float]:
     """Mean nearest-neighbour distance and the validity threshold ``lim`` (see the config)."""
+    return _spacing_stats(x, kd, cfg)[:2]
+
+
+def _spacing_stats(x: np.ndarray, kd: cKDTree, cfg: KDTreeConfig) -> tuple[float, float, float]:
+    """:func:`_spacing_and_limit` and the cloud's dimension as the cascade's widths see it: how the
+    distance to the ``j``-th neighbour grows with ``j`` (``d_j ~ j**(1/dim)``: 2 on a surface, 3 in
+    a volume; 2 where it cannot be measured), from the same sample and query."""
     n = x.shape[0]
     rng = np.random.default_rng(cfg.seed)
     sample = x if n <= cfg.stat_samples else x[rng.choice(n, cfg.stat_samples, replace=False)]
@@ -294,7 +301,13 @@ def _spacing_and_limit(x: np.ndarray, kd: cKDTree, cfg: KDTreeConfig) -> tuple[f
         spacing = extent / n ** (1.0 / 3.0) if extent > 0 else float(cfg.fallback_spacing)
     dk = dist[:, kv - 1]
     lim = float(np.mean(dk) + cfg.validity_std_factor * np.std(dk))
-    return spacing, max(lim, cfg.validity_floor_factor * spacing)
+    dim = 2.0
+    j_lo, j_hi = 8, kq - 1
+    if j_hi >= 4 * j_lo:
+        d_lo, d_hi = float(np.median(dist[:, j_lo])), float(np.median(dist[:, j_hi]))
+        if d_lo > 0 and d_hi > d_lo:
+            dim = float(np.clip(math.log(j_hi / j_lo) / math.log(d_hi / d_lo), 1.0, 3.0))
+    return spacing, max(lim, cfg.validity_floor_factor * spacing), dim
 
 
 def _check_inputs(xyz, alive) -> tuple[np.ndarray, np.ndarray]:
@@ -440,24 +453,34 @@ def _cell_boxes(cfg: KDTreeConfig, axes, values, bb_lo, bb_hi, count, depth: int
     return lo_levels, hi_levels
 
 
-# Superset widths of the candidate cascade, in units of ``num_candidates``, indexed from the bottom
-# candidate level up (the bottom level keeps only its own candidates). Wider sets mean more distance
-# work per node and fewer fallback queries; these were tuned on surface clouds (1e5..2e6 points,
-# ~1% fallbacks). They change the speed, never the result.
-_SUPERSET_FACTORS = (1.0, 1.85, 2.75, 3.75, 5.0)
+# Superset widths of the candidate cascade, in units of ``num_candidates``, by the points per node
+# of the level (1, 4, 8, 16, 32; beyond, x1.35 per doubling): a node's superset must hold its
+# children's candidates, which lie farther out the farther the children's centres are from its own,
+# i.e. the larger the node. Tuned on surface clouds (1e5..2e6 points at their natural depth, ~1%
+# fallbacks; 112k points at depth 21, whose nodes hold 0-2 points); raised to the power dim / 2 for
+# the cloud's dimension. They change the speed, never the result (the rows are canonical).
+_SUPERSET_FACTORS = ((0.0, 2.0, 3.0, 4.0, 5.0), (1.25, 1.85, 2.75, 3.75, 5.0))  # (log2 points, factor)
 _GROW_BLOCK = 1024  # growing-level nodes per task (one scipy query, then their subtrees)
 _THREADS = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 _CASCADE_CHUNK = 32  # growing-level nodes whose subtrees are processed together (cache-sized)
 
 
-def _superset_widths(kc: int, levels: int) -> list[int]:
-    """Width per candidate level, top (growing) level first."""
-    f = _SUPERSET_FACTORS
-    grow = [f[-1] * 1.35 ** (j - len(f) + 1) if j >= len(f) else f[j] for j in range(levels)]
-    return [max(kc, int(round(v * kc))) for v in grow[::-1]]
+def _superset_widths(kc: int, levels: int, points_per_node=None, dim: float = 2.0) -> list[int]:
+    """Width per candidate level, top (growing) level first; the bottom level keeps ``kc``.
+    ``points_per_node``: per level, top first (default: 2, 4, 8, ... from the bottom up, a tree at
+    its natural depth)."""
+    if points_per_node is None:
+        points_per_node = [2.0 ** (levels - j) for j in range(levels)]
+    lp_at, f_at = _SUPERSET_FACTORS
+    out = []
+    for p in points_per_node[:-1]:
+        lp = math.log2(max(float(p), 1.0))
+        f = float(np.interp(lp, lp_at, f_at)) if lp <= lp_at[-1] else f_at[-1] * 1.35 ** (lp - lp_at[-1])
+        out.append(max(kc + 1, int(round(f ** (dim / 2.0) * kc))))
+    return out + [kc]
 
 
-def _candidate_sets(xo, kd, center, nonempty, first_level, depth, kc, out_index, cap):
+def _candidate_sets(xo, kd, center, nonempty, first_level, depth, kc, out_index, cap, dim=2.0):
     """Candidate sets of the levels ``first_level .. depth-1`` (rows in heap order from the first
     node of ``first_level``): the ``kc`` points of ``xo`` nearest each ``centre``, nearest first,
     mapped through ``out_index`` (``[n + 1]``, entry ``n`` = the sentinel), and the distance of the
@@ -479,7 +502,7 @@ def _candidate_sets(xo, kd, center, nonempty, first_level, depth, kc, out_index,
     superset, so distances equal to ~1e-13 relative are ordered by that position (ties: any order
     is correct)."""
     n = xo.shape[0]
-    widths = _superset_widths(kc, depth - first_level)
+    widths = _superset_widths(kc, depth - first_level, [n / 2.0**lv for lv in range(first_level, depth)], dim)
     total = center.shape[0]
     cand = np.full((total, kc), cap, np.int32)
     radius = np.zeros(total, np.float64)
@@ -654,7 +677,7 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     # spatially local in memory.
     slot_pts = leaf[leaf >= 0]
     kd = cKDTree(x[slot_pts])
-    spacing, lim = _spacing_and_limit(x, kd, cfg)
+    spacing, lim, dim = _spacing_stats(x, kd, cfg)
     lap("index")
 
     margin0 = cfg.margin_factor * spacing / math.sqrt(3.0)
@@ -672,7 +695,8 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
     center = 0.5 * (lo_all[first:last].astype(np.float64) + hi_all[first:last].astype(np.float64))
     out_index = np.append(idx[slot_pts], cap).astype(np.int32)
     cand, radius = _candidate_sets(
-        kd.data, kd, center, count_all[first:last] > 0, depth - cfg.num_render_levels - 1, depth, kc, out_index, cap
+        kd.data, kd, center, count_all[first:last] > 0, depth - cfg.num_render_levels - 1, depth, kc, out_index, cap,
+        dim,
     )
     # Validity at the rendering levels: the released code's "too spread out" rule.
     r0 = 2 ** (depth - cfg.num_render_levels) - 1

@@ -255,7 +255,9 @@ _HARD = {
     "single_point": lambda rng: np.float32([[0.25, -1.0, 3.0]]),
     "plane": lambda rng: np.concatenate([rng.uniform(-1, 1, (600, 2)), np.zeros((600, 1))], 1).astype(np.float32),
     "grid": lambda rng: np.stack(np.meshgrid(*[np.arange(7, dtype=np.float32)] * 3, indexing="ij"), -1).reshape(-1, 3),
-    "symmetric_pairs": lambda rng: (lambda p: np.concatenate([p, -p]))(rng.integers(-4, 5, (300, 3)).astype(np.float32)),
+    "symmetric_pairs": lambda rng: (lambda p: np.concatenate([p, -p]))(
+        rng.integers(-4, 5, (300, 3)).astype(np.float32)
+    ),
 }
 
 
@@ -295,7 +297,8 @@ def test_candidates_do_not_depend_on_the_cascade(name, monkeypatch):
         monkeypatch.setattr(kdtree, "_GROW_BLOCK", block)
         got = build_tree(xyz, alive, cfg)
         for field in ("candidates", "valid", "lo", "perm"):
-            np.testing.assert_array_equal(np.asarray(getattr(got, field)), np.asarray(getattr(ref, field)), err_msg=field)
+            np.testing.assert_array_equal(np.asarray(getattr(got, field)), np.asarray(getattr(ref, field)),
+                                          err_msg=field)
         monkeypatch.undo()
 
 
