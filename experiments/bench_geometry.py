@@ -274,6 +274,7 @@ def build_case(args) -> dict:
     build_tree_reference(xyz[:4096], warm, cfg.replace(depth=None))
     best = {"ckdtree": math.inf, "build_tree": math.inf, "previous_build": math.inf}
     phases = {}
+    load_before = os.getloadavg()
     for _ in range(repeat):
         for key, fn in (("ckdtree", lambda ph: cKDTree(xyz)),
                         ("build_tree", lambda ph: build_tree(xyz, alive, cfg, timings=ph)),
@@ -284,10 +285,17 @@ def build_case(args) -> dict:
             t = time.perf_counter() - t
             if t < best[key]:
                 best[key], phases[key] = t, ph
+    load_after = os.getloadavg()
     tree = build_tree(xyz, alive, cfg)
     rows = np.asarray(tree.count)[tree.first_candidate_node : 2**tree.depth - 1]
+    # Candidate rows ordered differently from the previous build's: only where points are
+    # equidistant from the box centre (tests/geometry/test_kdtree.py checks that).
+    prev = np.asarray(build_tree_reference(xyz, alive, cfg).candidates)
+    differing = int((prev != np.asarray(tree.candidates)).any(axis=1).sum())
     return {"case": name, "cloud": kind, "n": n, "depth": tree.depth, "repeat": repeat,
+            "load_average_before": load_before, "load_average_after": load_after,
             "candidate_rows": int(rows.size), "nonempty_candidate_rows": int((rows > 0).sum()),
+            "candidate_rows_tie_order_differing_from_previous": differing,
             **{f"{k}_s": v for k, v in best.items()},
             "build_phases_s": phases.get("build_tree", {}), "previous_build_phases_s": phases.get("previous_build", {}),
             "ratio_build_tree_to_ckdtree": best["build_tree"] / best["ckdtree"],
@@ -331,7 +339,8 @@ def build_main(args):
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__,
                     "load_average_at_end": os.getloadavg()},
         "note": "Shared 2-core CPU with other jobs running: compare ratios within one row (same process, "
-                "interleaved, best of repeat), not absolute seconds across rows or runs.",
+                "interleaved, best of repeat), not absolute seconds across rows or runs. Each row records "
+                "os.getloadavg() before and after its timings.",
         "rows": rows,
         "table_markdown": md,
     }
