@@ -38,6 +38,7 @@ def main(argv=None) -> None:
         if name not in PRESETS:
             parser.error(f"--presets: unknown preset {name!r}; expected one of {sorted(PRESETS)}")
     rows = {}
+    started_at = commit()  # the code that generates (HEAD may move during a long generation)
     for name in args.presets:
         preset = get_preset(name)
         root = Path(args.out) / name
@@ -65,7 +66,7 @@ def main(argv=None) -> None:
             "per_scene_seconds": {k: round(v["total"], 2) for k, v in report["scenes"].items()},
             "contact_sheet": str(sheet.relative_to(RESULTS.parent.parent)),
             "seed": args.seed,
-            "commit": commit(),
+            "commit": started_at,
             "command": "python -m experiments.make_benchmark --presets " + name
                        + (f" --scenes {' '.join(args.scenes)}" if args.scenes else ""),
         }
