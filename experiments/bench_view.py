@@ -9,17 +9,26 @@
    model zero-shot (:func:`~ne_jax.edit.model.edit_model`: normals, IST, the carried tree) and render
    it at 128 x 128.
 
+With ``--reference-path REF`` (a checkout of older code: ``git worktree add REF COMMIT``) the same
+measurements run first with ``REF``'s ``ne_jax`` in a subprocess, and the tables give new against
+reference in the same run. Each version is timed as its viewer renders: the current viewer keeps the
+buffer sizes a frame grew to for later frames and edits (:attr:`ne_jax.view.Viewer.capacities`).
+
 Writes ``experiments/results/bench_view.{json,md}``::
 
     python -m experiments.bench_view --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
+    python -m experiments.bench_view --run RUN --reference-path REF
     python -m experiments.bench_view                    # trains one first (tiny blocks, a few minutes)
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -44,7 +53,7 @@ def _tiny_run(work: Path) -> Path:
 def _orbit(model, n: int, size: int):
     """``n`` OpenCV ``(wxyz, position)`` cameras on a circle around the cloud, looking at its centre,
     at the middle of the model's depth range (the benchmark's cameras: the object fills the view)."""
-    from ne_jax.view.edits import matrix_to_quat
+    from ne_jax.view.frames import look_at
 
     xyz = np.asarray(model.scene.points.xyz)[np.asarray(model.scene.points.alive)]
     center = 0.5 * (xyz.min(0) + xyz.max(0))
@@ -52,19 +61,28 @@ def _orbit(model, n: int, size: int):
     cams = []
     for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
         pos = center + radius * np.array([np.cos(a), np.sin(a), 0.5])
-        fwd = (center - pos) / np.linalg.norm(center - pos)
-        right = np.cross(fwd, (0, 0, 1.0))
-        right /= np.linalg.norm(right)
-        cams.append((matrix_to_quat(np.stack([right, np.cross(fwd, right), fwd], 1)), pos))
+        cams.append((look_at(pos, center), pos))
     return cams
 
 
+def _render(model, camera):
+    """``(seconds, model)``: one viewer frame of ``model``, and the model the viewer renders next: with
+    the buffer sizes the frame grew to, where the code keeps them (a reference may predate that)."""
+    from ne_jax.view.frames import render_frame
+
+    frame = render_frame(model, camera)
+    return frame[1], (frame[2] if len(frame) > 2 else model)
+
+
 def _fps(model, size: int, frames: int) -> dict:
-    from ne_jax.view.frames import camera_from_viewer, render_frame
+    from ne_jax.view.frames import camera_from_viewer
 
     cams = [camera_from_viewer(w, p, np.deg2rad(40), size, size) for w, p in _orbit(model, frames, size)]
-    _, first = render_frame(model, cams[0])  # compiles
-    times = [render_frame(model, c)[1] for c in cams]
+    first, model = _render(model, cams[0])  # compiles
+    times = []
+    for c in cams:
+        t, model = _render(model, c)
+        times.append(t)
     return {"size": size, "frames": frames, "first_frame_s": round(first, 3),
             "median_frame_s": round(float(np.median(times)), 4), "fps": round(1.0 / float(np.median(times)), 2),
             "min_frame_s": round(min(times), 4)}
@@ -102,13 +120,18 @@ def _resampled(model, n: int, seed: int = 0):
 def _edit_100k(model, n: int, size: int) -> dict:
     from ne_jax.edit.model import edit_model
     from ne_jax.view import edits as E
-    from ne_jax.view.frames import camera_from_viewer, render_frame
+    from ne_jax.view.frames import camera_from_viewer
 
     big, build_s = _resampled(model, n)
     (wxyz, pos), = _orbit(big, 1, size)
     cam = camera_from_viewer(wxyz, pos, np.deg2rad(40), size, size)
-    _, first = render_frame(big, cam)
-    _, unedited = render_frame(big, cam)
+    first, shown = _render(big, cam)
+    unedited, shown = _render(shown, cam)
+
+    def sized(edited):  # the viewer's edited model starts from the buffer sizes its frames needed
+        caps = shown.scene.capacities
+        return edited.replace(scene=edited.scene.replace(capacities=caps))
+
     pts = big.state.point_state(big.scene.points)
     edit = E.ViewEdit.identity(pts)
     xyz = edit.xyz[edit.remaining]
@@ -122,8 +145,8 @@ def _edit_100k(model, n: int, size: int) -> dict:
     t2 = time.perf_counter()
     edited, report = edit_model(big, moved.rows(), label="bench_view")
     t3 = time.perf_counter()
-    _, render_first = render_frame(edited, cam)
-    _, render_again = render_frame(edited, cam)
+    render_first, shown = _render(sized(edited), cam)
+    render_again, shown = _render(shown, cam)
     # a second edit, as in the viewer after its warm-up compiled the edit path: another part moved
     t4 = time.perf_counter()
     region2 = E.Region.make("box", (lo + hi) / 2 - (0, 0, 0.25 * (hi - lo)[2]), (hi - lo) * (1.1, 1.1, 0.5))
@@ -132,7 +155,7 @@ def _edit_100k(model, n: int, size: int) -> dict:
                                                                (0, 0, -20)))
     edited2, _ = edit_model(big, moved2.rows(), label="bench_view")
     t5 = time.perf_counter()
-    _, render_warm = render_frame(edited2, cam)
+    render_warm, shown = _render(sized(edited2), cam)
     return {"points": n, "selected": int(sel.size), "tree_build_s": round(build_s, 2),
             "select_s": round(t1 - t0, 4), "move_s": round(t2 - t1, 4), "edit_model_s": round(t3 - t2, 2),
             "edit_report": {k: report[k] for k in ("moved", "deleted", "good", "filled", "seconds") if k in report},
@@ -143,6 +166,69 @@ def _edit_100k(model, n: int, size: int) -> dict:
                      "select_move_rerender_s": round((t5 - t4) + render_warm, 2)}}
 
 
+def measure(run: Path, size: int, frames: int, points: int) -> dict:
+    """Frames per second (full and preview) and the 100,000-point edit, with this process's ``ne_jax``."""
+    from ne_jax.train.model import load_trained
+
+    model = load_trained(run)
+    fps = [_fps(model, size, frames), _fps(model, max(1, size // 4), frames)]
+    for row in fps:
+        print(row, file=sys.stderr, flush=True)
+    return {"fps": fps, "edit": _edit_100k(model, points, size)}
+
+
+def _reference(path: str, run: Path, size: int, frames: int, points: int) -> dict:
+    """:func:`measure` with the ``ne_jax`` of the checkout at ``path`` (a subprocess)."""
+    env = dict(os.environ, PYTHONPATH=path + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--run", str(run), "--size", str(size), "--frames",
+           str(frames), "--points", str(points), "--json-only"]
+    res = subprocess.run(cmd, env=env, cwd=path, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"--reference-path {path}: the reference run failed:\n{res.stderr[-3000:]}")
+    head = subprocess.run(["git", "-C", path, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    return {**json.loads(res.stdout.strip().splitlines()[-1]), "commit": head}
+
+
+def _table(new: dict, ref: dict | None) -> list[str]:
+    """Markdown rows of the frames and the edit, new against reference when there is one."""
+    cols = "| | this code | reference | ratio |" if ref else "| | s |"
+    rule = "|---|---:|---:|---:|" if ref else "|---|---:|"
+
+    def row(label, get, better="lower", fmt="{}"):
+        a = get(new)
+        if ref is None:
+            return f"| {label} | {fmt.format(a)} |"
+        b = get(ref)
+        ratio = (b / a) if better == "lower" else (a / b)
+        return f"| {label} | {fmt.format(a)} | {fmt.format(b)} | {ratio:.2f}x |"
+
+    full, prev = (lambda r: r["fps"][0]), (lambda r: r["fps"][1])
+    e, w = (lambda r: r["edit"]), (lambda r: r["edit"]["warm"])
+    size, psize = new["fps"][0]["size"], new["fps"][1]["size"]
+    lines = ["Frames of the tiny model (median over an orbit; the ratio is how many times faster this code is):", "",
+             cols.replace(" s |", " frames/s |"), rule,
+             row(f"{size} x {size} (full), frames/s", lambda r: full(r)["fps"], "higher"),
+             row(f"{psize} x {psize} (preview), frames/s", lambda r: prev(r)["fps"], "higher"),
+             row(f"{size} x {size}, first frame (compiles), s", lambda r: full(r)["first_frame_s"]), "",
+             f"Edit of the cloud resampled to {new['edit']['points']} points ({new['edit']['selected']} selected by a "
+             f"box, moved and turned 30 degrees; then a second edit, {new['edit']['warm']['selected']} points):", "",
+             cols, rule,
+             row("select (box region), s", lambda r: e(r)["select_s"]),
+             row("move, s", lambda r: e(r)["move_s"]),
+             row("edited model (normals, IST, carried tree), s", lambda r: e(r)["edit_model_s"]),
+             row(f"first render of the edit at {size} x {size} (compiles), s", lambda r: e(r)["render_edited_first_s"]),
+             row("**select + move + re-render** (the first edit: compiles the edit path), s",
+                 lambda r: e(r)["select_move_rerender_s"]),
+             row("second edit: select, move, edited model, s", lambda r: w(r)["edit_model_s"]),
+             row("its render, s", lambda r: w(r)["render_s"]),
+             row("**select + move + re-render, compiled** (the viewer warms up at start), s",
+                 lambda r: w(r)["select_move_rerender_s"]),
+             row("next render of the first edit, s", lambda r: e(r)["render_edited_s"]),
+             row(f"render of the unedited {new['edit']['points']}-point model, s", lambda r: e(r)["render_unedited_s"]),
+             ""]
+    return lines
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", default=None, help="a tiny model's run directory (default: train one in --work)")
@@ -150,7 +236,14 @@ def main(argv=None) -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--points", type=int, default=100_000)
+    ap.add_argument("--reference-path", default=None,
+                    help="a checkout of older code, timed first in a subprocess (git worktree add REF COMMIT)")
+    ap.add_argument("--json-only", action="store_true", help=argparse.SUPPRESS)  # the reference's subprocess
     args = ap.parse_args(argv)
+    run = Path(args.run) if args.run else _tiny_run(Path(args.work))
+    if args.json_only:
+        print(json.dumps(measure(run, args.size, args.frames, args.points)))
+        return
 
     import jax
 
@@ -159,55 +252,37 @@ def main(argv=None) -> None:
     from ne_jax.config_json import config_key
     from ne_jax.train.model import load_trained
 
-    run = Path(args.run) if args.run else _tiny_run(Path(args.work))
     model = load_trained(run)
     t_start = time.perf_counter()
     load = os.getloadavg()[0]
-    fps = [_fps(model, args.size, args.frames), _fps(model, max(1, args.size // 4), args.frames)]
-    for row in fps:
-        print(row, flush=True)
-    edit = _edit_100k(model, args.points, args.size)
-    print(edit, flush=True)
+    ref = None
+    if args.reference_path:
+        ref = _reference(args.reference_path, run, args.size, args.frames, args.points)
+        print("reference", ref, flush=True)
+    new = measure(run, args.size, args.frames, args.points)
+    print(new, flush=True)
+    load_after = os.getloadavg()[0]
     command = "python -m experiments.bench_view" + (" --run RUN" if args.run else "") + \
-        f" --size {args.size} --frames {args.frames} --points {args.points}"
+        f" --size {args.size} --frames {args.frames} --points {args.points}" + \
+        (" --reference-path REF" if ref else "")
     modified = provenance.modified()
     report = {"what": "ne-jax view: frames/s of a tiny model and a select+move+re-render on a resampled cloud",
               "commit": provenance.commit(), "worktree_modified": modified, "command": command,
               "model": {"run_config": model.run.name, "config_key": config_key(model.run),
                         "points": int(np.asarray(model.scene.points.alive).sum())},
-              "fps": fps, "edit": edit, "seconds": round(time.perf_counter() - t_start, 1),
+              **new, "reference": ref, "seconds": round(time.perf_counter() - t_start, 1),
               "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                           "device": jax.devices()[0].platform, "jax": jax.__version__,
-                          "load_before": round(load, 2)},
-              "shared": "other jobs ran on the same cores (load_before: 1-minute load average at the start)"}
+                          "load_before": round(load, 2), "load_after": round(load_after, 2)}}
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / "bench_view.json", report)
-    full, prev = fps
-    lines = [f"`ne-jax view` on {os.cpu_count()} CPU cores ({jax.devices()[0].platform}, JAX {jax.__version__}, "
-             f"load {load:.1f} at the start: other jobs shared the cores). Model `{model.run.name}` "
-             f"(config key {report['model']['config_key']}, {report['model']['points']} points). "
-             f"Commit {report['commit'][:12]}{' (work tree modified)' if modified else ''}; re-run: `{command}`.", "",
-             "| frame | median s | frames/s | first frame (compile) s |", "|---|---:|---:|---:|",
-             f"| {full['size']} x {full['size']} (full) | {full['median_frame_s']} | {full['fps']} | "
-             f"{full['first_frame_s']} |",
-             f"| {prev['size']} x {prev['size']} (preview) | {prev['median_frame_s']} | {prev['fps']} | "
-             f"{prev['first_frame_s']} |", "",
-             f"Edit of the cloud resampled to {edit['points']} points ({edit['selected']} selected by a box, moved "
-             "and turned 30 degrees):", "",
-             "| step | s |", "|---|---:|",
-             f"| select (box region) | {edit['select_s']} |", f"| move | {edit['move_s']} |",
-             f"| edited model (normals, IST, carried tree) | {edit['edit_model_s']} |",
-             f"| first render of the edit at {edit['size']} x {edit['size']} (compiles) | "
-             f"{edit['render_edited_first_s']} |",
-             f"| **select + move + re-render** (the first edit: compiles the edit path) | "
-             f"**{edit['select_move_rerender_s']}** |",
-             f"| a second edit ({edit['warm']['selected']} points): select, move, edited model | "
-             f"{edit['warm']['edit_model_s']} |",
-             f"| its render | {edit['warm']['render_s']} |",
-             f"| **select + move + re-render, compiled** (the viewer warms up at start) | "
-             f"**{edit['warm']['select_move_rerender_s']}** |",
-             f"| next render of the edit | {edit['render_edited_s']} |",
-             f"| render of the unedited {edit['points']}-point model | {edit['render_unedited_s']} |", ""]
+    against = f" against the reference {ref['commit'][:12]}, timed first in the same run" if ref else ""
+    lines = [f"`ne-jax view` on {os.cpu_count()} CPU cores ({jax.devices()[0].platform}, JAX {jax.__version__}; "
+             f"1-minute load average {load:.1f} at the start, {load_after:.1f} at the end: above 0 other jobs "
+             f"shared the cores). Model `{model.run.name}` (config key {report['model']['config_key']}, "
+             f"{report['model']['points']} points). Commit {report['commit'][:12]}"
+             f"{' (work tree modified)' if modified else ''}{against}; re-run: `{command}`.", "",
+             *_table(new, ref)]
     atomic_write_text(RESULTS / "bench_view.md", "\n".join(lines))
     print("\n".join(lines))
 

@@ -412,50 +412,126 @@ def until_complete(scene: PointScene, call, lost_of, max_grow: int = 4):
     return out, scene
 
 
-def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
-                   progress: bool | None = None, desc: str = "render", max_grow: int = 4,
-                   mesh: Mesh | None = None) -> RenderOut:
-    """Render any number of rays in compiled chunks of ``cfg.chunk`` (the last one padded), each
-    chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
-    chunk is rounded up to a multiple of the mesh's size).
+@functools.partial(jax.jit, static_argnums=0, static_argnames="mesh")
+def _survey_chunk(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh | None = None):
+    """Which rays of a chunk have anything to render, and the colour behind every ray:
+    ``(need [R] bool, color [R, 3])``. A ray needs rendering when the traversal found or lost a
+    segment or a node (any capacity: a ray that finds nothing and loses nothing finds nothing with
+    larger ones), or when its origin or direction is not finite (so the render's checks see it)."""
+    mesh = default_mesh() if mesh is None else mesh
 
-    A chunk that lost segments is rendered again with the scene's capacities grown
-    (:meth:`PointScene.grown`, at most ``max_grow`` times; later chunks keep the grown capacities,
-    so it compiles once more, not per chunk); what is still lost after that is reported in the
-    output's ``lost``.
-    ``progress``: show a progress bar (default: when there are more than 8 chunks). Deterministic
-    rules only (the stochastic rule is a training-time ablation: use :func:`render_rays`)."""
+    def survey(params, scene, rays, bg):
+        seg = intersect(scene.tree, rays, cfg.kdtree, scene.capacities)
+        finite = jnp.all(jnp.isfinite(rays.origin), -1) & jnp.all(jnp.isfinite(rays.direction), -1)
+        need = (seg.num_emitted > 0) | (seg.lost().count > 0) | ~finite
+        return need, background_color(cfg.shading, params, rays.origin, rays.direction, bg)
+
+    return shard_rays(survey, mesh, num_replicated=2)(params, scene, rays, background)
+
+
+def _in_chunks(rays: Rays, background: np.ndarray, index: np.ndarray, chunk: int) -> list[tuple[Rays, np.ndarray]]:
+    """``(rays, background)`` pieces of ``chunk`` rays, the rays ``index`` picks from host arrays (a
+    per-ray ``background [R, 3]``), the last piece padded with copies of its last ray. On the host:
+    selections of other sizes compile nothing."""
+    index = np.concatenate([index, np.repeat(index[-1:], (-index.size) % chunk)])
+    return [(jax.tree_util.tree_map(lambda a, sel=index[s:s + chunk]: a[sel], rays), background[index[s:s + chunk]])
+            for s in range(0, index.size, chunk)]
+
+
+def render_chunked_and_scene(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
+                             progress: bool | None = None, desc: str = "render", max_grow: int = 8,
+                             mesh: Mesh | None = None) -> tuple[RenderOut, PointScene]:
+    """:func:`render_chunked`, and the scene with the capacities the render grew to (keep it: a
+    later render of the same scene then neither loses nor compiles again)."""
     if cfg.quadrature.rule == "stochastic":
         raise ValueError("render_chunked renders deterministically; the 'stochastic' rule needs render_rays with a key")
     n = rays.num_rays
     mesh = default_mesh() if mesh is None else mesh
     chunk = padded_size(cfg.chunk, mesh)
-    pad = (-n) % chunk
-    padded = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), rays)
-    background = jnp.asarray(background, rays.origin.dtype)
-    per_ray_bg = background.ndim == 2
-    if per_ray_bg:
-        background = jnp.concatenate([background, jnp.repeat(background[-1:], pad, axis=0)])
-    starts = range(0, n + pad, chunk)
+    rays = jax.device_get(rays)
+    background = np.broadcast_to(np.asarray(background, rays.origin.dtype), (n, 3))
+    if cfg.checks or n <= chunk:  # the checks see every ray; one chunk holds them all anyway
+        todo, color = np.arange(n), None
+    else:
+        surveyed = jax.device_get([_survey_chunk(cfg, params, scene, r, bg, mesh=mesh)
+                                   for r, bg in _in_chunks(rays, background, np.arange(n), chunk)])
+        need, color = (np.concatenate(xs)[:n] for xs in zip(*surveyed))
+        todo = np.flatnonzero(need)
+    if todo.size == 0:
+        return jax.tree_util.tree_map(jnp.asarray, _background_out(background if color is None else color)), scene
+    pieces = _in_chunks(rays, background, todo, chunk)
     if progress is None:
-        progress = len(starts) > 8
-    outs = []
-    for s in tqdm(starts, desc=desc, unit="chunk", disable=not progress, leave=False):
-        sl = slice(s, s + chunk)
-        part = jax.tree_util.tree_map(operator.itemgetter(sl), padded)
-        bg = background[sl] if per_ray_bg else background
-        out, scene = until_complete(
-            scene, lambda s, part=part, bg=bg: _render_chunk_maybe_checked(cfg, params, s, part, bg, mesh),
-            lambda out: out.lost, max_grow)
-        outs.append(out)
-    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *outs)
+        progress = len(pieces) > 8
+    render = lambda s, r, bg: _render_chunk_maybe_checked(cfg, params, s, r, bg, mesh)  # noqa: E731
+    outs, counts = [], []
+    for r, bg in tqdm(pieces, desc=desc, unit="chunk", disable=not progress, leave=False):
+        outs.append(render(scene, r, bg))
+        if len(outs) > 1:  # one chunk in flight while the one before is read back
+            counts.append(outs[-2].lost.counts())
+    counts.append(outs[-1].lost.counts())
+    for _ in range(max_grow):  # the chunks that lost something, again with the capacities grown by all they lost
+        redo = [i for i, c in enumerate(counts) if c.total]
+        bigger = scene.grown(functools.reduce(operator.add, (counts[i] for i in redo), LostCounts())) if redo else None
+        if bigger is None:
+            break
+        scene = bigger
+        for i in redo:
+            outs[i] = render(scene, *pieces[i])
+            counts[i] = outs[i].lost.counts()
+    hits = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:todo.size], *jax.device_get(outs))
+    if todo.size < n:
+        full = _background_out(color)
+        for a, part in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(hits)):
+            a[todo] = part
+        hits = full
+    return jax.tree_util.tree_map(jnp.asarray, hits), scene
+
+
+def _background_out(color: np.ndarray) -> RenderOut:
+    """What rays that meet nothing render (host arrays): ``color [R, 3]``; opacity, depth, normal
+    and every count zero."""
+    r = color.shape[0]
+    zero = lambda *shape, dtype=color.dtype: np.zeros((r, *shape), dtype)  # noqa: E731
+    i32 = functools.partial(zero, dtype=np.int32)
+    return RenderOut(rgb=np.array(color), opacity=zero(), depth=zero(), normal=zero(3), num_segments=i32(),
+                     lost=Lost(frontier=i32(), slots=i32(), packing=i32(), emitted=i32()))
+
+
+def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
+                   progress: bool | None = None, desc: str = "render", max_grow: int = 8,
+                   mesh: Mesh | None = None) -> RenderOut:
+    """Render any number of rays in compiled chunks of ``cfg.chunk`` (the last one padded), each
+    chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
+    chunk is rounded up to a multiple of the mesh's size).
+
+    In two stages: every ray is first walked through the tree alone (no packing, KNN or shading),
+    then only the rays that found a segment are rendered, gathered into full chunks; the others get
+    the colour behind the scene. An image whose object covers a quarter of it costs a quarter of the
+    KNN and shading work. (With ``cfg.checks`` every ray is rendered, so the checks see them all;
+    rays that fit one chunk are rendered at once.)
+    The result equals one :func:`render_rays` call over every ray.
+
+    A chunk that lost segments is rendered again with the scene's capacities grown by what every
+    chunk lost (:meth:`PointScene.grown`, at most ``max_grow`` rounds); what is still lost after that
+    is reported in the output's ``lost``. :func:`render_chunked_and_scene` also returns the grown
+    scene. ``progress``: show a progress bar (default: when more than 8 chunks are rendered).
+    Deterministic rules only (the stochastic rule is a training-time ablation: use :func:`render_rays`)."""
+    return render_chunked_and_scene(cfg, params, scene, rays, background, progress, desc, max_grow, mesh)[0]
+
+
+def render_image_and_scene(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
+                           near: float, far: float, progress: bool | None = None,
+                           mesh: Mesh | None = None) -> tuple[RenderOut, PointScene]:
+    """:func:`render_image`, and the scene with the capacities the render grew to."""
+    rays = camera_rays(camera, near, far)
+    out, scene = render_chunked_and_scene(cfg, params, scene, rays, background, progress, desc="render image",
+                                          mesh=mesh)
+    h, w = camera.height, camera.width
+    return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out), scene
 
 
 def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
                  near: float, far: float, progress: bool | None = None, mesh: Mesh | None = None) -> RenderOut:
     """Render every pixel of ``camera`` (rays split over ``mesh``, see :func:`render_chunked`);
     fields are reshaped to images (``rgb`` ``[H, W, 3]``)."""
-    rays = camera_rays(camera, near, far)
-    out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image", mesh=mesh)
-    h, w = camera.height, camera.width
-    return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out)
+    return render_image_and_scene(cfg, params, scene, camera, background, near, far, progress, mesh)[0]

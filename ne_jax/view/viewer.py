@@ -26,7 +26,7 @@ import numpy as np
 from ne_jax.edit.targets import EditError
 from ne_jax.train.model import TrainedModel, load_trained
 from ne_jax.view import edits as E
-from ne_jax.view.frames import MODES, camera_from_viewer, fit_size, render_frame, viewer_pose
+from ne_jax.view.frames import MODES, camera_from_viewer, fit_size, look_at, render_frame, viewer_pose
 
 
 class ViewerError(ValueError):
@@ -95,6 +95,9 @@ class Viewer:
         self._history: list[E.ViewEdit] = []
         self.selection = np.zeros(0, np.int64)
         self._edited = model  # what is rendered: the model, or the model edited by self.edit
+        # the largest buffer sizes a render has needed so far: every model rendered starts from them,
+        # so a frame after an edit neither loses segments nor compiles the render again
+        self._capacities = model.scene.capacities
         self._scene_version = 0
         self._clients: dict[int, _ClientState] = {}
         self._stopped = False
@@ -153,7 +156,15 @@ class Viewer:
         with self._lock:
             model = self._edited
         with self._render_lock:
-            return render_frame(model, camera, mode)
+            frame = render_frame(model, camera, mode)
+        self._keep_grown(model, frame.model)
+        return frame.image, frame.seconds
+
+    @property
+    def capacities(self):
+        """The buffer sizes (:class:`~ne_jax.geometry.capacity.Capacities`) every render starts from:
+        the largest a render of this viewer has needed so far."""
+        return self._capacities
 
     @property
     def edited_model(self) -> TrainedModel:
@@ -228,9 +239,10 @@ class Viewer:
 
         t0 = time.perf_counter()
         if self.edit.changed(self._points):
-            self._edited, _ = edit_model(self.model, self.edit.rows(), ist=self._gui_ist.value, label="viewer")
+            edited, _ = edit_model(self.model, self.edit.rows(), ist=self._gui_ist.value, label="viewer")
         else:
-            self._edited = self.model
+            edited = self.model
+        self._edited = self._sized(edited)
         self._edit_seconds = time.perf_counter() - t0
         self._scene_version += 1
         self._show_points()
@@ -238,6 +250,22 @@ class Viewer:
         self._set_status(f"edit applied in {self._edit_seconds:.2f} s: {int(self.edit.deleted.sum())} deleted, "
                          f"{len(self._history)} step(s) to undo")
         self._redraw()
+
+    def _sized(self, model: TrainedModel) -> TrainedModel:
+        """``model`` with the largest capacities a render has needed so far."""
+        if model.scene.capacities == self._capacities:
+            return model
+        return model.replace(scene=model.scene.replace(capacities=self._capacities))
+
+    def _keep_grown(self, rendered: TrainedModel, grown: TrainedModel) -> None:
+        """After a render of ``rendered`` grew its capacities (into ``grown``): keep them for every
+        later render (capacities only grow, so the latest are the largest)."""
+        if grown is rendered:
+            return
+        with self._lock:
+            self._capacities = grown.scene.capacities
+            if self._edited is rendered:
+                self._edited = grown
 
     def _redraw(self) -> None:
         self._scene_version += 1
@@ -276,9 +304,13 @@ class Viewer:
 
         try:
             edited, _ = edit_model(self.model, self.edit.rows(), ist=True, label="warm-up")
-            below = self._center - np.array([0.0, 0.0, 3.0 * self._extent])  # looking up (+z) at the centre
+            # a view of the whole cloud, so that the rays that meet it are rendered (and compiled)
+            eye = self._center + self._extent * np.array([0.0, -1.5, 0.75])
+            camera = camera_from_viewer(look_at(eye, self._center), eye, 0.7, self.max_side, self.max_side)
+            sized = self._sized(edited)
             with self._render_lock:
-                render_frame(edited, camera_from_viewer((1.0, 0.0, 0.0, 0.0), below, 0.7, 8, 8))
+                frame = render_frame(sized, camera)
+            self._keep_grown(sized, frame.model)
         except Exception:  # the viewer works without it; the first edit then compiles
             if not self._stopped:
                 self._set_status("warm-up failed: " + traceback.format_exc(limit=2).splitlines()[-1])

@@ -181,6 +181,28 @@ def test_rays_that_miss_everything_are_background(setup):
     np.testing.assert_array_equal(np.asarray(out.opacity), [0.0, 0.0])
 
 
+def test_chunked_render_shades_only_the_rays_that_meet_the_cloud(setup, monkeypatch):
+    """The first stage walks every ray; only rays with a segment reach the render, in full chunks:
+    ceil(hits / chunk) render calls (one per chunk of all rays in a one-stage render), and the
+    misses are the background."""
+    import ne_jax.render.renderer as R
+
+    cfg, params, scene, camera, _ = setup
+    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
+    calls = []
+    real = R._render_chunk_maybe_checked
+    monkeypatch.setattr(R, "_render_chunk_maybe_checked",
+                        lambda *a: calls.append((a[3].num_rays, a[2].capacities)) or real(*a))
+    out = render_chunked(cfg.replace(chunk=64), params, scene, rays, BG)
+    hits = int((np.asarray(out.num_segments) > 0).sum())
+    assert 0 < hits < rays.num_rays - 64  # at least one chunk of rays with nothing to shade
+    first = [n for n, caps in calls if caps == scene.capacities]  # the rest: chunks again with grown capacities
+    assert first == [64] * -(-hits // 64)
+    miss = np.asarray(out.num_segments) == 0
+    np.testing.assert_array_equal(np.asarray(out.rgb)[miss], np.ones((int(miss.sum()), 3), np.float32))
+    np.testing.assert_array_equal(np.asarray(out.opacity)[miss], 0.0)
+
+
 def test_chunked_render_equals_one_call(setup):
     """render_chunked (chunks of rays, a two-pass walk whose retry share grows until it fits, a
     packing budget per chunk) must give what one render_rays call over every ray gives, without

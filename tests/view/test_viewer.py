@@ -17,18 +17,8 @@ from ne_jax.compiles import count_compiles  # noqa: E402
 from ne_jax.data.nerf_synthetic import load_split  # noqa: E402
 from ne_jax.train.model import load_trained  # noqa: E402
 from ne_jax.view import edits as E  # noqa: E402
-from ne_jax.view.frames import MODES, camera_from_viewer, render_frame  # noqa: E402
+from ne_jax.view.frames import MODES, camera_from_viewer, look_at, render_frame  # noqa: E402
 from ne_jax.view.viewer import Viewer, ViewerError  # noqa: E402
-
-
-def _look_at(position, target):
-    """OpenCV ``wxyz`` of a camera at ``position`` looking at ``target`` with world ``+z`` up."""
-    fwd = np.asarray(target, float) - position
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, (0, 0, 1.0))
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    return E.matrix_to_quat(np.stack([right, down, fwd], 1))
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +35,7 @@ def test_serves_and_renders_a_camera(viewer, tiny_run):
     model = load_trained(tiny_run)
     c2w = np.asarray(load_split(model.scene_dir, "train").c2w[0], np.float64)
     pos = c2w[:3, 3]
-    wxyz = _look_at(pos, (0, 0, 0))
+    wxyz = look_at(pos, (0, 0, 0))
     frames = {}
     for mode in MODES:
         img, secs = viewer.render(wxyz, pos, np.deg2rad(40), 24, 16, mode)
@@ -53,10 +43,10 @@ def test_serves_and_renders_a_camera(viewer, tiny_run):
         frames[mode] = img
     assert frames["rgb"].std() > 0 and not np.array_equal(frames["rgb"], frames["depth"])
     # the frame is the model's render of the same camera (OpenCV -> OpenGL conversion included)
-    want, _ = render_frame(model, camera_from_viewer(wxyz, pos, np.deg2rad(40), 24, 16))
+    want = render_frame(model, camera_from_viewer(wxyz, pos, np.deg2rad(40), 24, 16)).image
     np.testing.assert_array_equal(frames["rgb"], want)
     # a camera moved elsewhere renders something else
-    other, _ = viewer.render(_look_at(-pos, (0, 0, 0)), -pos, np.deg2rad(40), 24, 16)
+    other, _ = viewer.render(look_at(-pos, (0, 0, 0)), -pos, np.deg2rad(40), 24, 16)
     assert not np.array_equal(other, frames["rgb"])
 
 
@@ -74,12 +64,12 @@ def test_edit_steps_and_save_match_ne_jax_edit(viewer, tmp_path):
     # the render of a carried tree (small eager ops for new shapes aside)
     assert viewer.warmed.wait(300) and "failed" not in viewer.status
     sel = viewer.select_region(E.Region.make("box", center, np.ptp(xyz, 0) * 0.3))
-    wxyz, pos = _look_at(center + (0, -3, 0), center), center + (0, -3, 0)
+    wxyz, pos = look_at(center + (0, -3, 0), center), center + (0, -3, 0)
     with count_compiles() as compiled:
         viewer.move(E.Transform(translation=(0.05, 0, 0)))
         viewer.render(wxyz, pos, np.deg2rad(40), 24, 16)
-    assert not {"jit(ist_from_plan)", "jit(_render_chunk)"} & set(compiled.names), compiled.names
-    assert viewer.undo() and viewer.edited_model is viewer.model
+    assert not {"jit(ist_from_plan)", "jit(_survey_chunk)", "jit(_render_chunk)"} & set(compiled.names), compiled.names
+    assert viewer.undo() and viewer.edited_model.state is viewer.model.state
     with pytest.raises(E.SelectionError, match="found none"):
         viewer.select_region(E.Region.make("sphere", center + 100, 0.01))
         viewer.move(E.Transform(translation=(0.1, 0, 0)))
@@ -107,10 +97,35 @@ def test_edit_steps_and_save_match_ne_jax_edit(viewer, tmp_path):
     np.testing.assert_array_equal(np.asarray(cli.scene.points.ist), np.asarray(saved.scene.points.ist))
     # undo twice: back to the unedited model; a benchmark edit loads by name
     assert viewer.undo() and viewer.undo() and not viewer.undo()
-    assert viewer.edited_model is viewer.model
+    assert viewer.edited_model.state is viewer.model.state
     viewer.load_edit("twist")
     assert viewer.edit.changed(viewer._points)
     assert viewer.undo()
+
+
+def test_capacities_a_frame_grew_are_kept_for_later_frames_and_edits(tiny_run):
+    """A render that loses segments grows the capacities; the viewer keeps them, so the next frame
+    and the model of the next edit start from them (nothing lost, no compile for a bigger size)."""
+    model = load_trained(tiny_run)
+    small = model.scene.capacities.replace(max_segments=2)
+    v = Viewer(model.replace(scene=model.scene.replace(capacities=small)), port=0, max_side=32, warm_up=False)
+    try:
+        xyz = np.asarray(model.scene.points.xyz)[np.asarray(model.scene.points.alive)]
+        center = 0.5 * (xyz.min(0) + xyz.max(0))
+        pos = center + (0, -3, 0)
+        first, _ = v.render(look_at(pos, center), pos, np.deg2rad(40), 24, 16)
+        grown = v.capacities
+        assert grown.max_segments > 2 and v.edited_model.scene.capacities == grown
+        # the frame is the complete render (what the model renders with capacities that lose nothing)
+        want = render_frame(model, camera_from_viewer(look_at(pos, center), pos, np.deg2rad(40), 24, 16)).image
+        np.testing.assert_array_equal(first, want)
+        v.select_region(E.Region.make("box", center, np.ptp(xyz, 0) * 0.3))
+        v.move(E.Transform(translation=(0.05, 0, 0)))
+        assert v.edited_model.scene.capacities == grown
+        v.render(look_at(pos, center), pos, np.deg2rad(40), 24, 16)
+        assert v.capacities == grown
+    finally:
+        v.stop()
 
 
 def test_cli_view_reports_bad_input(tiny_run, tmp_path, capsys):
