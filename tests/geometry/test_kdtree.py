@@ -322,3 +322,26 @@ def test_split_levels_match_the_reference(n, depth, kind):
     flat = lambda r: list(r[0]) + list(r[1]) + [r[2]] + [v for part in r[3] for v in part]  # noqa: E731
     for u, v in zip(flat(a), flat(b), strict=True):
         assert u.dtype == v.dtype and u.shape == v.shape and u.tobytes() == v.tobytes()
+
+
+@pytest.mark.parametrize("n, depth, kind", [(1, 6, "normal"), (300, 12, "normal"), (5000, 16, "normal"),
+                                            (4096, 12, "rounded"), (777, 10, "signed_zeros")])
+def test_cell_boxes_match_the_reference(n, depth, kind):
+    """``_cell_boxes`` (also used by ``carry_tree``) returns what the previous implementation
+    returned, byte for byte: signed zeros on split faces, empty nodes, single-point levels."""
+    from ne_jax.geometry.kdtree import _cell_boxes, _split_levels
+
+    from .reference import _ref_cell_boxes
+
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=(n, 3))
+    if kind == "rounded":
+        x = np.round(2 * x)
+    if kind == "signed_zeros":
+        x[:, 1] = np.where(rng.random(n) < 0.5, -0.0, 0.0)
+    axes, values, _, (lo, hi, cnt) = _split_levels(x, depth)
+    for margin in (0.0, 0.05):
+        a = _ref_cell_boxes(CFG, axes, values, lo, hi, cnt, depth, margin)
+        b = _cell_boxes(CFG, axes, values, lo, hi, cnt, depth, margin)
+        for u, v in zip([*a[0], *a[1]], [*b[0], *b[1]], strict=True):
+            assert u.dtype == v.dtype and u.shape == v.shape and u.tobytes() == v.tobytes()
