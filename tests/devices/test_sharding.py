@@ -69,13 +69,25 @@ def scene_and_rays():
 
 @multidevice
 @pytest.mark.parametrize("devices, chunk", [(2, None), (3, 25), (4, None)])
-def test_sharded_render_equals_single_device(scene_and_rays, devices, chunk):
-    """3 devices (odd): chunks of 25 rays padded to 27, 64 rays in three chunks, the last one padded."""
+def test_sharded_render_equals_single_device(scene_and_rays, devices, chunk, monkeypatch):
+    """3 devices (odd): chunks of 25 rays padded to 27, 64 rays in three chunks, the last one padded.
+    Every chunk's render is split over all the devices."""
+    import ne_jax.render.renderer as R
+
     params, scene, rays, bg = scene_and_rays
     one = render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(1))
     cfg = CFG if chunk is None else CFG.replace(chunk=chunk)
+    placed = []
+    real = R._render_chunk_maybe_checked
+
+    def spy(*args):
+        out = real(*args)
+        placed.append({d.id for d in out.rgb.devices()})
+        return out
+
+    monkeypatch.setattr(R, "_render_chunk_maybe_checked", spy)
     many = render_chunked(cfg, params, scene, rays, bg, mesh=ray_mesh(devices))
-    assert {d.id for d in many.rgb.devices()} == set(range(devices))
+    assert placed and all(ids == set(range(devices)) for ids in placed), placed
     for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(many)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
 
