@@ -48,6 +48,7 @@ import numpy as np
 from flax import struct
 from scipy.spatial import cKDTree
 
+from ne_jax.memo import LastResults, array_key
 from ne_jax.numerics import safe_div, safe_sqrt
 
 
@@ -146,11 +147,19 @@ def _unit_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x / np.where(length > 0, length, 1.0)[..., None], length
 
 
+_NEIGHBORS = LastResults(2)  # every edit of one cloud that deletes the same points shares its table
+
+
 def ist_neighbors(cfg: ISTConfig, xyz0, alive1) -> tuple[np.ndarray, np.ndarray]:
     """The ``k = cfg.candidates`` nearest neighbours of every slot in the original cloud among the
-    points alive after the edit (host): ``(neighbors [C, k] int64, valid [C, k] bool)``, nearest first."""
+    points alive after the edit (host): ``(neighbors [C, k] int64, valid [C, k] bool)``, nearest first
+    (read-only: the table of the last clouds is kept, for the next edit of the same cloud)."""
     p0 = np.asarray(xyz0, np.float64)
     alive = np.asarray(alive1, bool)
+    return _NEIGHBORS.get(array_key(p0, alive, int(cfg.candidates)), lambda: _neighbor_table(p0, alive, cfg))
+
+
+def _neighbor_table(p0: np.ndarray, alive: np.ndarray, cfg: ISTConfig) -> tuple[np.ndarray, np.ndarray]:
     c, k = alive.size, int(cfg.candidates)
     idx = np.flatnonzero(alive)
     neighbors = np.zeros((c, k), np.int64)
@@ -201,9 +210,10 @@ def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence,
         v, _ = _unit_rows(d1 - np.sum(d1 * nj1, -1, keepdims=True) * nj1)
         combos = np.array(list(itertools.combinations(range(k), 2)))
         ia, ib = combos[:, 0], combos[:, 1]
-        # |sin| of the angle between unit tangents, from their dot product (a cross product costs 5x)
-        cos0 = np.einsum("nka,nka->nk", u[:, ia], u[:, ib])
-        cos1 = np.einsum("nka,nka->nk", v[:, ia], v[:, ib])
+        # |sin| of the angle between unit tangents, from their dot products (a cross product costs
+        # 5x): every pair's at once as a [k, k] Gram matrix (the same sums as per pair, 2x faster)
+        cos0 = np.einsum("nia,nja->nij", u, u)[:, ia, ib]
+        cos1 = np.einsum("nia,nja->nij", v, v)[:, ia, ib]
         sin = np.sqrt(np.maximum(1.0 - np.maximum(cos0 * cos0, cos1 * cos1), 0.0))  # min(sin0, sin1)
         score = np.where(usable[:, ia] & usable[:, ib], sin, -1.0)
         best = np.argmax(score, axis=1)

@@ -53,6 +53,9 @@ from ne_jax.geometry.kdtree import (
     _spacing_and_limit,
     _split_levels,
 )
+from ne_jax.memo import LastResults, array_key
+
+_LIMITS = LastResults(2)  # the validity limit of a rest cloud: the same for every edit of one model
 
 
 def _similarity_fit(x: np.ndarray, y: np.ndarray, w: np.ndarray):
@@ -202,7 +205,8 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     resplit = np.flatnonzero(torn & oriented)
     if resplit.size:  # the released code's "too spread out" rule for the boxes made here
         rest_alive = np.flatnonzero(in_tree[:cap])
-        lim = unit * _spacing_and_limit(rest[rest_alive], cKDTree(rest[rest_alive]), cfg)[1]
+        lim = unit * _LIMITS.get(array_key(rest[rest_alive], cfg), lambda: _spacing_and_limit(
+            rest[rest_alive], cKDTree(rest[rest_alive]), cfg)[1])
     for i in resplit:
         ids = perm[i * span : (i + 1) * span]
         ids = ids[ids < cap]

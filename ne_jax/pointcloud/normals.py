@@ -82,11 +82,23 @@ class NormalConfig:
     """``"visibility"``: at most this many propagation sweeps."""
 
 
+def unique_rows(xyz: np.ndarray) -> np.ndarray:
+    """The distinct rows of ``xyz [N, D]`` in lexicographic order: ``np.unique(xyz, axis=0)``, by a
+    ``lexsort`` of the columns (np.unique sorts rows as structured records, 10x slower)."""
+    xyz = np.asarray(xyz)
+    if xyz.shape[0] < 2:
+        return xyz.copy()
+    rows = xyz[np.lexsort(xyz.T[::-1])]
+    first = np.ones(rows.shape[0], bool)
+    first[1:] = np.any(rows[1:] != rows[:-1], axis=1)
+    return rows[first]
+
+
 def mean_spacing(xyz: np.ndarray) -> float:
     """Mean distance from each point ``[N, 3]`` to its nearest *distinct* neighbour (0 when there is
     no distinct pair)."""
     xyz = np.asarray(xyz, np.float64)
-    uniq = np.unique(xyz, axis=0)
+    uniq = unique_rows(xyz)
     if uniq.shape[0] < 2:
         return 0.0
     d, _ = cKDTree(uniq).query(uniq, k=2, workers=-1)
@@ -115,7 +127,7 @@ def _centers(cameras) -> np.ndarray | None:
 
 def _degenerate_normals(xyz: np.ndarray) -> np.ndarray | None:
     """Normals for clouds without a plane (< 3 distinct points or collinear), else ``None``."""
-    uniq = np.unique(xyz, axis=0)
+    uniq = unique_rows(xyz)
     centered = uniq - uniq.mean(0)
     s = np.linalg.svd(centered, compute_uv=False) if len(uniq) > 1 else np.zeros(1)
     scale = max(float(s[0]), 1e-300)

@@ -7,7 +7,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ne_jax.pointcloud.normals import ORIENTATIONS, NormalConfig, estimate_normals, mean_spacing, orient_normals
+from ne_jax.pointcloud.normals import (
+    ORIENTATIONS,
+    NormalConfig,
+    estimate_normals,
+    mean_spacing,
+    orient_normals,
+    unique_rows,
+)
 
 from .conftest import RADIUS, fibonacci_sphere
 
@@ -93,6 +100,21 @@ def test_degenerate_clouds_give_finite_unit_normals(sphere, name, orient):
 
 def test_empty_cloud(sphere):
     assert estimate_normals(NormalConfig(), np.zeros((0, 3)), sphere).shape == (0, 3)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 500])
+def test_unique_rows_is_np_unique(n):
+    """The lexsort dedupe gives np.unique(axis=0)'s rows in its order: duplicates, ties in the first
+    columns, signed zeros, a grid where every coordinate repeats."""
+    rng = np.random.default_rng(n)
+    xyz = np.round(rng.normal(size=(n, 3)), 1)
+    if n > 5:
+        m = len(xyz[1::3])
+        xyz[::3][:m] = xyz[1::3]
+        xyz[0], xyz[1] = (-0.0, 0.5, 0.5), (0.0, 0.5, 0.5)
+    np.testing.assert_array_equal(unique_rows(xyz), np.unique(xyz, axis=0))
+    grid = np.stack(np.meshgrid(*[np.arange(3.0)] * 3), -1).reshape(-1, 3)
+    np.testing.assert_array_equal(unique_rows(np.concatenate([grid, grid[::-1]])), np.unique(grid, axis=0))
 
 
 def test_mean_spacing():
