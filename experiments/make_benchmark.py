@@ -3,10 +3,14 @@
     python -m experiments.make_benchmark                      # tiny and default presets
     python -m experiments.make_benchmark --presets tiny       # just tiny
     python -m experiments.make_benchmark --preset tiny_pt --out DIR   # the path-traced tiny set (Mitsuba 3)
+    python -m experiments.make_benchmark --preset default_pt --out DIR --scenes glossy cup --originals-only --resume
+                                                              # two unedited scenes, continuing a stopped run
 
 Writes the scenes to ``--out/<preset>/``, the contact sheet of each preset to
 ``experiments/results/benchmark_contact_sheet_<preset>.png`` and the timings to
-``experiments/results/make_benchmark.json``, and prints a Markdown table.
+``experiments/results/make_benchmark.json``, and prints a Markdown table. ``--out/<preset>/`` is
+deleted first unless ``--resume``, which keeps its finished scenes and continues a stopped scene from
+its last rendered image (the same bytes as an uninterrupted run; the times are summed over sittings).
 """
 
 from __future__ import annotations
@@ -32,6 +36,10 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="outputs/benchmark", help="each preset goes to OUT/<preset>/")
     parser.add_argument("--scenes", nargs="+", default=None, help="only these scenes (default: all)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--originals-only", action="store_true",
+                        help="only the unedited scenes, none of their edits (training needs no more)")
+    parser.add_argument("--resume", action="store_true",
+                        help="keep OUT/<preset>/: skip its finished scenes, continue a stopped one from its last image")
     args = parser.parse_args(argv)
 
     for name in args.presets:
@@ -42,11 +50,13 @@ def main(argv=None) -> None:
     for name in args.presets:
         preset = get_preset(name)
         root = Path(args.out) / name
-        if root.exists():
+        if root.exists() and not args.resume:
             shutil.rmtree(root)
-        report = generate_benchmark(root, preset, args.scenes, seed=args.seed)
+        report = generate_benchmark(root, preset, args.scenes, seed=args.seed,
+                                    edits=() if args.originals_only else None, resume=args.resume)
         n_scenes = len(report["scenes"])
-        n_edits = sum(edit is not None for _, edit, _ in list_variants(root))  # over all scenes
+        n_edits = sum(edit is not None and scene in report["scenes"]  # over the scenes asked for
+                      for scene, edit, _ in list_variants(root))
         images = (n_scenes * (preset.train_views + preset.val_views + preset.test_views)
                   + n_edits * (preset.train_views + preset.test_views))
         sheet = contact_sheet(root, RESULTS / f"benchmark_contact_sheet_{name}.png",
@@ -68,7 +78,10 @@ def main(argv=None) -> None:
             "seed": args.seed,
             "commit": started_at,
             "command": "python -m experiments.make_benchmark --presets " + name
-                       + (f" --scenes {' '.join(args.scenes)}" if args.scenes else ""),
+                       + (f" --scenes {' '.join(args.scenes)}" if args.scenes else "")
+                       + (f" --seed {args.seed}" if args.seed else "")
+                       + (" --originals-only" if args.originals_only else "")
+                       + (" --resume" if args.resume else ""),
         }
         print(f"benchmark[{name}]: {images} images in {report['seconds']:.1f} s "
               f"({1000 * report['seconds'] / images:.0f} ms per image) -> {root}", flush=True)

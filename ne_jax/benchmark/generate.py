@@ -13,7 +13,9 @@ Layout of ``<root>`` for one preset::
 
 Everything is deterministic for a seed (same seed, same bytes; a path-traced preset's scene.json adds
 its generation time, the one field that differs), and each scene directory appears only when
-complete (written to a temporary sibling, then renamed).
+complete (written to a temporary sibling, then renamed). A long generation can be resumed
+(``resume=True``): finished scenes are kept and each image is saved as it is rendered, under
+``<root>/.<scene>.partial/``, until its scene is complete.
 
 The ground truth is rendered by the preset's ``renderer`` (:data:`RENDERERS`): the ray caster
 (``tiny``, ``default``) or Mitsuba 3's path tracer (``tiny_pt``, ``default_pt``; needs ``mitsuba``).
@@ -22,7 +24,9 @@ The ground truth is rendered by the preset's ``renderer`` (:data:`RENDERERS`): t
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -30,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from ne_jax.atomic import atomic_directory, atomic_write_json
+from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_json
 from ne_jax.benchmark import raycaster
 from ne_jax.benchmark import scenes as S
 from ne_jax.data import cameras
@@ -124,12 +128,31 @@ def _rng(seed: int, scene_name: str, stream: str) -> np.random.Generator:
     return np.random.default_rng(key)
 
 
-def _render_split(render, c2ws: np.ndarray, seeds: np.ndarray, resolution: int, desc: str) -> np.ndarray:
-    """``[n, H, W, 4]`` images ``render(c2ws[i], seeds[i])`` of every camera."""
+def _render_split(render, c2ws: np.ndarray, seeds: np.ndarray, resolution: int, desc: str,
+                  cache: Path | None = None) -> tuple[np.ndarray, float]:
+    """``([n, H, W, 4] images render(c2ws[i], seeds[i]) of every camera, seconds spent rendering)``.
+
+    With ``cache`` (a folder), each image is saved there as soon as it is rendered (``r_<i>.npz``: the
+    float image and its render seconds, written atomically) and read back instead of rendered again,
+    so an interrupted generation continues where it stopped, with the same bytes; the seconds then
+    include those of the cached images."""
     images = np.empty((len(c2ws), resolution, resolution, 4), np.float32)
+    seconds = 0.0
     for i in tqdm(range(len(c2ws)), desc=desc, leave=False, unit="img"):
+        path = None if cache is None else cache / f"r_{i}.npz"
+        if path is not None and path.is_file():
+            with np.load(path) as done:
+                images[i], seconds = done["image"], seconds + float(done["seconds"])
+            continue
+        t0 = time.perf_counter()
         images[i] = render(c2ws[i], int(seeds[i]))
-    return images
+        took = time.perf_counter() - t0
+        seconds += took
+        if path is not None:
+            buffer = io.BytesIO()
+            np.savez(buffer, image=images[i], seconds=np.float64(took))
+            atomic_write_bytes(path, buffer.getvalue())
+    return images, seconds
 
 
 def _renderer(scene: S.Scene, edit, preset: BenchmarkPreset):
@@ -162,10 +185,48 @@ def _write_points(path: Path, samples: dict[str, np.ndarray]) -> None:
     write_ply(path, props)
 
 
-def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: int = 0) -> dict[str, float]:
-    """Render one scene and all its edits into ``root/<scene_name>``; returns timings in seconds."""
+def _kept(scene_dir: Path, preset: BenchmarkPreset, seed: int, edits: list[str]) -> dict[str, float] | None:
+    """The timings a finished scene in ``scene_dir`` recorded (its variants' generation seconds, where
+    the renderer records them) if it was made with ``preset``, ``seed`` and exactly ``edits``; else None."""
+    meta_path = scene_dir / "scene.json"
+    if not meta_path.is_file():
+        return None
+    meta = json.loads(meta_path.read_text())
+    if meta.get("preset") != preset.record() or meta.get("seed") != seed or list(meta.get("edits", {})) != edits:
+        return None
+    timings = {}
+    for name, directory in [("original", scene_dir)] + [(e, scene_dir / "edits" / e) for e in edits]:
+        generation = json.loads((directory / "scene.json").read_text()).get("generation")
+        if generation is not None:
+            timings[name] = float(generation["seconds"])
+    timings["total"] = sum(timings.values())
+    return timings
+
+
+def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: int = 0, edits=None,
+                   resume: bool = False) -> dict[str, float]:
+    """Render one scene and its edits into ``root/<scene_name>``; returns timings in seconds.
+
+    ``edits``: the names of the edits to make (``()``: only the original; default: all of the scene's);
+    ``scene.json`` lists the ones made. With ``resume``, a finished scene already there with the same
+    preset, seed and edits is kept (returning the timings it recorded), and every image is also saved
+    under ``root/.<scene_name>.partial/`` as soon as it is rendered, so a generation stopped part way
+    continues from its last image with the same bytes; that folder goes when the scene is complete."""
     t0 = time.perf_counter()
     scene = S.get_scene(scene_name, preset.detail)
+    names = list(scene.edits) if edits is None else list(edits)
+    unknown = [e for e in names if e not in scene.edits]
+    if unknown:
+        raise KeyError(f"scene {scene_name!r} has no edit {unknown[0]!r}; expected some of {list(scene.edits)}")
+    if resume and (kept := _kept(Path(root) / scene_name, preset, seed, names)) is not None:
+        return kept
+    partial = None
+    if resume:
+        partial = Path(root) / f".{scene_name}.partial"
+        key = {"scene": scene_name, "preset": preset.record(), "seed": seed}
+        if (partial / "key.json").is_file() and json.loads((partial / "key.json").read_text()) != key:
+            shutil.rmtree(partial)  # images of another preset or seed
+        atomic_write_json(partial / "key.json", key)
     if preset.matte:
         scene = dataclasses.replace(scene, materials=tuple(dataclasses.replace(m, ks=0.0, reflect=0.0)
                                                            for m in scene.materials))
@@ -176,7 +237,8 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
     }
     samples = S.surface_samples(scene, preset.surface_samples, seed)
     timings = {"build": time.perf_counter() - t0}
-    variants = [(None, None)] + list(scene.edits.items())
+    earlier = 0.0  # seconds of the images rendered in earlier sittings (resume)
+    variants = [(None, None)] + [(n, scene.edits[n]) for n in names]
     with atomic_directory(Path(root) / scene_name) as out:
         for edit_name, edit in variants:
             t1 = time.perf_counter()
@@ -184,13 +246,17 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
             target.mkdir(parents=True, exist_ok=True)
             render, description = _renderer(scene, edit, preset)
             splits = ("train", "val", "test") if edit is None else ("train", "test")
-            images = 0
+            images, cached_seconds = 0, 0.0
             for split in splits:
                 # one renderer seed per image (the path tracer's noise), independent across variants and splits
                 seeds = _rng(seed, scene_name, f"render/{edit_name or 'original'}/{split}").integers(
                     0, 2**31, len(cams[split]))
-                rendered = _render_split(render, S.truth_cameras(edit, cams[split]), seeds, preset.resolution,
-                                         f"{scene_name}/{edit_name or 'original'}/{split}")
+                t2 = time.perf_counter()
+                rendered, seconds = _render_split(
+                    render, S.truth_cameras(edit, cams[split]), seeds, preset.resolution,
+                    f"{scene_name}/{edit_name or 'original'}/{split}",
+                    None if partial is None else partial / (edit_name or "original") / split)
+                cached_seconds += max(0.0, seconds - (time.perf_counter() - t2))  # earlier sittings' images
                 if not preset.alpha:  # on white, opaque
                     a = rendered[..., 3:]
                     rendered = np.concatenate([rendered[..., :3] * a + (1.0 - a), np.ones_like(a)], axis=-1)
@@ -209,22 +275,28 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
                 "renderer": description,
                 "effects": preset.effects(scene),
             }
+            seconds = time.perf_counter() - t1 + cached_seconds
+            earlier += cached_seconds
             if preset.renderer != "raycast":  # the one field that is not the same bytes for a seed
-                meta["generation"] = {"images": images, "seconds": round(time.perf_counter() - t1, 2)}
+                meta["generation"] = {"images": images, "seconds": round(seconds, 2)}
             if edit is not None and edit.rigid is not None:
                 meta["rigid"] = [list(row) for row in edit.rigid]
                 meta["moves_environment"] = edit.moves_environment
             if edit is None:
-                meta["edits"] = {n: {"kind": e.kind, "description": e.description} for n, e in scene.edits.items()}
+                meta["edits"] = {n: {"kind": e.kind, "description": e.description} for n, e in variants[1:]}
             atomic_write_json(target / "scene.json", meta)
-            timings[edit_name or "original"] = time.perf_counter() - t1
-    timings["total"] = time.perf_counter() - t0
+            timings[edit_name or "original"] = seconds
+    if partial is not None:
+        shutil.rmtree(partial, ignore_errors=True)
+    timings["total"] = time.perf_counter() - t0 + earlier
     return timings
 
 
-def generate_benchmark(root, preset: str | BenchmarkPreset = "tiny", scenes=None, seed: int = 0) -> dict:
-    """Generate ``scenes`` (default: all) of ``preset`` under ``root``; returns and saves timings
-    (``root/timings.json``)."""
+def generate_benchmark(root, preset: str | BenchmarkPreset = "tiny", scenes=None, seed: int = 0, edits=None,
+                       resume: bool = False) -> dict:
+    """Generate ``scenes`` (default: all) of ``preset`` under ``root``, each with ``edits`` (default:
+    all; ``()``: only the originals; see :func:`generate_scene`, also for ``resume``); returns and
+    saves timings (``root/timings.json``)."""
     preset = get_preset(preset) if isinstance(preset, str) else preset
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
@@ -235,8 +307,11 @@ def generate_benchmark(root, preset: str | BenchmarkPreset = "tiny", scenes=None
     t0 = time.perf_counter()
     per_scene = {}
     for name in tqdm(names, desc=f"benchmark[{preset.name}]", unit="scene"):
-        per_scene[name] = generate_scene(name, preset, root, seed)
-    report = {"preset": preset.record(), "seed": seed, "seconds": time.perf_counter() - t0, "scenes": per_scene}
+        per_scene[name] = generate_scene(name, preset, root, seed, edits, resume)
+    seconds = time.perf_counter() - t0
+    if resume:  # the scenes' own records, earlier sittings included
+        seconds = sum(t["total"] for t in per_scene.values())
+    report = {"preset": preset.record(), "seed": seed, "seconds": seconds, "scenes": per_scene}
     atomic_write_json(root / "timings.json", report)
     return report
 

@@ -128,3 +128,83 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     assert "contact sheet" in out
     assert (tmp_path / "contact_sheet.png").is_file()
     assert len(list_variants(tmp_path / "benchmark")) == 4 * 7  # original + six edits per scene
+
+
+def _original_files(scene_dir: Path) -> dict[str, str]:
+    """Digests of a scene's original (its images, cameras and points; not its edits or scene.json)."""
+    return {k: v for k, v in digest_tree(scene_dir).items() if not k.startswith("edits") and k != "scene.json"}
+
+
+def test_originals_only_makes_the_same_original_and_no_edits(glossy_root, tmp_path):
+    generate_scene("glossy", GEN_SCENES, tmp_path, seed=0, edits=())
+    assert not (tmp_path / "glossy" / "edits").exists()
+    assert [v[1] for v in list_variants(tmp_path)] == [None]
+    assert _original_files(tmp_path / "glossy") == _original_files(glossy_root / "glossy")
+    with pytest.raises(KeyError, match="no edit 'melt'"):
+        generate_scene("cup", GEN_SCENES, tmp_path, edits=["melt"])
+    assert not (tmp_path / "cup").exists()
+
+
+def _counting_renderer(monkeypatch, fail_after=None):
+    """Count the images rendered (``calls[0]``); with ``fail_after``, stop the run as a kill would after
+    that many."""
+    import ne_jax.benchmark.generate as generate
+
+    real, calls = generate._renderer, [0]
+
+    def renderer(*args):
+        render, description = real(*args)
+
+        def counted(c2w, seed):
+            if fail_after is not None and calls[0] == fail_after:
+                raise KeyboardInterrupt
+            calls[0] += 1
+            return render(c2w, seed)
+
+        return counted, description
+
+    monkeypatch.setattr(generate, "_renderer", renderer)
+    return calls
+
+
+def test_resume_continues_from_the_last_image_with_the_same_bytes(glossy_root, tmp_path):
+    total = 6 + 6 * 5  # the original's 3 + 1 + 2 views, each edit's 3 + 2
+    with pytest.MonkeyPatch.context() as mp:
+        calls = _counting_renderer(mp, fail_after=8)
+        with pytest.raises(KeyboardInterrupt):
+            generate_scene("glossy", GEN_SCENES, tmp_path, seed=0, resume=True)
+        assert calls[0] == 8 and not (tmp_path / "glossy").exists()
+        assert len(list((tmp_path / ".glossy.partial").rglob("r_*.npz"))) == 8
+    with pytest.MonkeyPatch.context() as mp:
+        calls = _counting_renderer(mp)
+        generate_scene("glossy", GEN_SCENES, tmp_path, seed=0, resume=True)
+        assert calls[0] == total - 8  # only the images the first sitting did not finish
+    assert digest_tree(tmp_path / "glossy") == digest_tree(glossy_root / "glossy")
+    assert not (tmp_path / ".glossy.partial").exists()
+    with pytest.MonkeyPatch.context() as mp:  # a finished scene is kept as it is
+        calls = _counting_renderer(mp)
+        stamp = (tmp_path / "glossy" / "scene.json").stat().st_mtime_ns
+        generate_scene("glossy", GEN_SCENES, tmp_path, seed=0, resume=True)
+        assert calls[0] == 0 and (tmp_path / "glossy" / "scene.json").stat().st_mtime_ns == stamp
+        generate_scene("glossy", GEN_SCENES, tmp_path, seed=1, resume=True)  # another seed: made anew
+        assert calls[0] == total
+
+
+def test_make_benchmark_originals_only_and_resume(tmp_path, monkeypatch, capsys):
+    import json
+
+    import experiments.make_benchmark as mb
+
+    monkeypatch.setattr(mb, "RESULTS", tmp_path / "repo" / "results")
+    monkeypatch.setattr(mb, "get_preset", lambda name: GEN_SCENES)
+    out = tmp_path / "bench"
+    mb.main(["--preset", "tiny", "--out", str(out), "--scenes", "cup", "--originals-only"])
+    assert [v[:2] for v in list_variants(out / "tiny")] == [("cup", None)]
+    row = json.loads((tmp_path / "repo" / "results" / "make_benchmark.json").read_text())["presets"]["tiny"]
+    assert row["images"] == 3 + 1 + 2 and row["variants_per_scene"] == 1
+    assert row["command"].endswith("--scenes cup --originals-only")
+    stamp = (out / "tiny" / "cup" / "scene.json").stat().st_mtime_ns
+    calls = _counting_renderer(monkeypatch)
+    mb.main(["--preset", "tiny", "--out", str(out), "--scenes", "cup", "glossy", "--originals-only", "--resume"])
+    assert (out / "tiny" / "cup" / "scene.json").stat().st_mtime_ns == stamp  # kept, not rendered again
+    assert calls[0] == 6 and [v[:2] for v in list_variants(out / "tiny")] == [("cup", None), ("glossy", None)]
