@@ -29,19 +29,17 @@ is rare (after edits and point-cloud rounds); everything the tree feeds (``inter
 Cost, by phase (``build_tree(..., timings=)``): ``splits`` — one ``argpartition`` per level on
 rows padded to a common width (see ``_split_levels``; levels where every node holds at most one
 point, below log2(n) at a fixed depth, are filled without partitions); ``index`` — ``cKDTree`` on
-the points in slot order + spacing statistics; ``boxes``; ``candidates`` — a set of 96 for each
-non-empty node of the five candidate levels (empty nodes: the sentinel, no work), built by a
-cascade of certified supersets (see ``_candidate_sets``) on a thread pool.
-``python experiments/bench_geometry.py --build --repeat 2`` (``bench_geometry_build.json``:
-``build_tree``, a bare ``cKDTree(points)`` and the previous build interleaved in one process, best
-of 2, on the shared 2-core CPU at load ~10 from other jobs, so seconds are ~3x a quiet machine's
-and only the ratios within a row mean much): 1e6 surface points 15.7 s = 22x ``cKDTree``
-(candidates 12.4 s, splits 1.9 s); 1e6 uniform points 29.0 s = 33x (candidates 25.9 s: in a
-volume the cascade's certificate fails for 30-50% of the bottom levels' nodes, which fall back to
-direct queries); the paper's depth 21 with 112k points 18.0 s = 343x, 2.8x faster than building
-every row (560k of its 2M candidate rows are non-empty). Candidate sets are 80-90% of the build:
-the exact, sorted 96 nearest points of ~``n`` box centres, paid in numpy's per-element work
-(distances, uint64 key sorts, gathers) and scipy's 480-wide queries at the growing level.
+the points in slot order + spacing statistics; ``boxes``; ``candidates`` — a canonical set of 96
+for each non-empty node of the five candidate levels (empty nodes: the sentinel, no work), built
+by a cascade of certified supersets whose widths follow the data (see ``_candidate_sets``) on a
+thread pool. ``python -m experiments.bench_geometry --build --repeat 2``
+(``bench_geometry_build.json``: ``build_tree``, a bare ``cKDTree(points)`` and the previous build
+interleaved in one process, best of 2, on the shared 2-core CPU; load 1-2): 1e6 surface points
+8.8 s = 17x ``cKDTree`` (candidates 7.1 s, splits 1.1 s; 12x in a run at load ~7); 1e6 uniform
+points 15.2 s = 27x; the paper's depth 21 with 112k points 2.9 s, 5x faster than the previous
+build. Candidate sets are 80% of the build: the exact, sorted 96 nearest points of ~``n`` box
+centres, paid in numpy's per-element work (distances, uint64 key sorts, gathers) and scipy's
+wide queries at the growing level (docs/studies/geometry.md, "The build against cKDTree").
 """
 
 from __future__ import annotations
@@ -177,7 +175,8 @@ class KDTree:
         split_value: ``[P-1]`` split coordinate (midpoint between the two children's points).
         perm: ``[P]`` int32 point index (into the ``PointState``) per slot, sentinel ``capacity``.
         candidates: ``[nodes of the candidate levels, num_candidates]`` int32 point indices nearest
-            the box centre, nearest first (equidistant points in any order), sentinel ``capacity``;
+            the box centre, nearest first (equidistant points in slot order, i.e. by position in
+            ``perm``, in a built tree), sentinel ``capacity``;
             row ``g - first_candidate_node``.
         spacing: ``[]`` mean nearest-neighbour distance of the alive points (the length unit).
         frame_rot, frame_shift: ``[2**frame_level, 3, 3]`` / ``[2**frame_level, 3]`` or ``None``.
@@ -525,11 +524,18 @@ def _candidate_sets(xo, kd, center, nonempty, first_level, depth, kc, out_index,
     ``c'`` is in ``S`` (triangle inequality), so its pick is exact when its ``kc``-th distance is
     below ``R - off`` (shrunk by a relative 1e-12 for rounding); its own radius is
     ``min(R - off, first distance left out)``. Nodes failing the test (about 1% on surface clouds,
-    up to half at the bottom levels of a uniform volume) fall back to a direct query. Distances are
+    a third at the bottom levels of a uniform volume) fall back to a direct query. Distances are
     computed as scipy does (float64, ``dx² + dy² + dz²``) and ordered as one uint64 key per entry:
     the squared distance's bits with its low bits replaced by the entry's position in the parent's
-    superset, so distances equal to ~1e-13 relative are ordered by that position (ties: any order
-    is correct)."""
+    superset; a row whose first ``kc + 1`` keys hold two equal distance bits is sorted again exactly.
+
+    Every row is canonical: the ``kc`` points first by squared distance, then by slot (position in
+    ``xo``). Rows whose head has no tie are so by the keys; tied heads (a 2-point node's points are
+    often exactly equidistant from its centre; grids, duplicates) are sorted by (distance, slot),
+    scipy's rows included, and a tie group reaching past a query's width is queried wider. The
+    ``kc``-th distance is below the certified radius, so the whole tie group at the ``kc``-th place
+    is in the superset. The rows therefore do not depend on the superset widths
+    (:func:`_superset_widths`), on which nodes fall back, or on the blocks and threads."""
     n = xo.shape[0]
     widths = _superset_widths(kc, depth - first_level, [n / 2.0**lv for lv in range(first_level, depth)], dim)
     total = center.shape[0]
