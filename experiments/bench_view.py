@@ -9,9 +9,10 @@
    model zero-shot (:func:`~ne_jax.edit.model.edit_model`: normals, IST, the carried tree) and render
    it at 128 x 128.
 
-With ``--reference-path REF`` (a checkout of older code: ``git worktree add REF COMMIT``) the same
-measurements run first with ``REF``'s ``ne_jax`` in a subprocess, and the tables give new against
-reference in the same run. Each version is timed as its viewer renders: the current viewer keeps the
+With ``--reference-path REF`` (a checkout of older code: ``git worktree add REF COMMIT``) each version
+is measured ``--rounds`` times in fresh processes, alternating (``REF``'s ``ne_jax``, then this
+checkout's, then the other way round), and the tables give the best of each, new against
+reference, in the same run. Each version is timed as its viewer renders: the current viewer keeps the
 buffer sizes a frame grew to for later frames and edits (:attr:`ne_jax.view.Viewer.capacities`).
 
 Writes ``experiments/results/bench_view.{json,md}``::
@@ -24,6 +25,7 @@ Writes ``experiments/results/bench_view.{json,md}``::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -53,7 +55,16 @@ def _tiny_run(work: Path) -> Path:
 def _orbit(model, n: int, size: int):
     """``n`` OpenCV ``(wxyz, position)`` cameras on a circle around the cloud, looking at its centre,
     at the middle of the model's depth range (the benchmark's cameras: the object fills the view)."""
-    from ne_jax.view.frames import look_at
+    try:
+        from ne_jax.view.frames import look_at
+    except ImportError:  # a reference checkout from before frames.look_at
+        from ne_jax.view.edits import matrix_to_quat
+
+        def look_at(position, target):
+            fwd = (target - position) / np.linalg.norm(target - position)
+            right = np.cross(fwd, (0, 0, 1.0))
+            right /= np.linalg.norm(right)
+            return matrix_to_quat(np.stack([right, np.cross(fwd, right), fwd], 1))
 
     xyz = np.asarray(model.scene.points.xyz)[np.asarray(model.scene.points.alive)]
     center = 0.5 * (xyz.min(0) + xyz.max(0))
@@ -177,16 +188,28 @@ def measure(run: Path, size: int, frames: int, points: int) -> dict:
     return {"fps": fps, "edit": _edit_100k(model, points, size)}
 
 
-def _reference(path: str, run: Path, size: int, frames: int, points: int) -> dict:
-    """:func:`measure` with the ``ne_jax`` of the checkout at ``path`` (a subprocess)."""
+def _measure_in(path: str, run: Path, size: int, frames: int, points: int) -> dict:
+    """:func:`measure` in a fresh process (nothing compiled yet) with the ``ne_jax`` of the checkout
+    at ``path``, and that checkout's commit."""
     env = dict(os.environ, PYTHONPATH=path + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cmd = [sys.executable, str(Path(__file__).resolve()), "--run", str(run), "--size", str(size), "--frames",
            str(frames), "--points", str(points), "--json-only"]
     res = subprocess.run(cmd, env=env, cwd=path, capture_output=True, text=True)
     if res.returncode != 0:
-        raise SystemExit(f"--reference-path {path}: the reference run failed:\n{res.stderr[-3000:]}")
+        raise SystemExit(f"{path}: the measurement failed:\n{res.stderr[-3000:]}")
     head = subprocess.run(["git", "-C", path, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     return {**json.loads(res.stdout.strip().splitlines()[-1]), "commit": head}
+
+
+def _best(a, b, key: str = ""):
+    """Field by field the better of two measurements: the lower time (``*_s``), the higher ``fps``."""
+    if isinstance(a, dict):
+        return {k: _best(v, b[k], k) for k, v in a.items()}
+    if isinstance(a, list):
+        return [_best(x, y) for x, y in zip(a, b)]
+    if isinstance(a, (int, float)) and key.endswith("_s"):
+        return min(a, b)
+    return max(a, b) if isinstance(a, (int, float)) and key == "fps" else a
 
 
 def _table(new: dict, ref: dict | None) -> list[str]:
@@ -238,6 +261,8 @@ def main(argv=None) -> None:
     ap.add_argument("--points", type=int, default=100_000)
     ap.add_argument("--reference-path", default=None,
                     help="a checkout of older code, timed first in a subprocess (git worktree add REF COMMIT)")
+    ap.add_argument("--rounds", type=int, default=2,
+                    help="with --reference-path: measurements of each version (alternating; the best of each kept)")
     ap.add_argument("--json-only", action="store_true", help=argparse.SUPPRESS)  # the reference's subprocess
     args = ap.parse_args(argv)
     run = Path(args.run) if args.run else _tiny_run(Path(args.work))
@@ -256,15 +281,21 @@ def main(argv=None) -> None:
     t_start = time.perf_counter()
     load = os.getloadavg()[0]
     ref = None
-    if args.reference_path:
-        ref = _reference(args.reference_path, run, args.size, args.frames, args.points)
-        print("reference", ref, flush=True)
-    new = measure(run, args.size, args.frames, args.points)
+    if args.reference_path:  # alternate the order, so that load on a shared machine hits both alike
+        versions = {"reference": args.reference_path, "new": str(ROOT)}
+        rounds: dict[str, list] = {"reference": [], "new": []}
+        for i in range(args.rounds):
+            for name in (("reference", "new") if i % 2 == 0 else ("new", "reference")):
+                rounds[name].append(_measure_in(versions[name], run, args.size, args.frames, args.points))
+                print(name, rounds[name][-1], flush=True)
+        ref, new = (functools.reduce(_best, rounds[name]) for name in ("reference", "new"))
+    else:
+        new = measure(run, args.size, args.frames, args.points)
     print(new, flush=True)
     load_after = os.getloadavg()[0]
     command = "python -m experiments.bench_view" + (" --run RUN" if args.run else "") + \
         f" --size {args.size} --frames {args.frames} --points {args.points}" + \
-        (" --reference-path REF" if ref else "")
+        (f" --reference-path REF --rounds {args.rounds}" if ref else "")
     modified = provenance.modified()
     report = {"what": "ne-jax view: frames/s of a tiny model and a select+move+re-render on a resampled cloud",
               "commit": provenance.commit(), "worktree_modified": modified, "command": command,
@@ -276,7 +307,8 @@ def main(argv=None) -> None:
                           "load_before": round(load, 2), "load_after": round(load_after, 2)}}
     RESULTS.mkdir(exist_ok=True)
     atomic_write_json(RESULTS / "bench_view.json", report)
-    against = f" against the reference {ref['commit'][:12]}, timed first in the same run" if ref else ""
+    against = (f" against the reference {ref['commit'][:12]} in the same run ({args.rounds} alternating rounds of "
+               "each, in fresh processes; the best of each)") if ref else ""
     lines = [f"`ne-jax view` on {os.cpu_count()} CPU cores ({jax.devices()[0].platform}, JAX {jax.__version__}; "
              f"1-minute load average {load:.1f} at the start, {load_after:.1f} at the end: above 0 other jobs "
              f"shared the cores). Model `{model.run.name}` (config key {report['model']['config_key']}, "

@@ -417,11 +417,13 @@ def _survey_chunk(cfg: RenderConfig, params, scene, rays, background, mesh: Mesh
     """Which rays of a chunk have anything to render, and the colour behind every ray:
     ``(need [R] bool, color [R, 3])``. A ray needs rendering when the traversal found or lost a
     segment or a node (any capacity: a ray that finds nothing and loses nothing finds nothing with
-    larger ones), or when its origin or direction is not finite (so the render's checks see it)."""
+    larger ones), or when its origin or direction is not finite (so the render's checks see it). One
+    segment slot is enough to tell: a second segment counts as lost, and the walk's width is the
+    scene's."""
     mesh = default_mesh() if mesh is None else mesh
 
     def survey(params, scene, rays, bg):
-        seg = intersect(scene.tree, rays, cfg.kdtree, scene.capacities)
+        seg = intersect(scene.tree, rays, cfg.kdtree, scene.capacities.replace(max_segments=1))
         finite = jnp.all(jnp.isfinite(rays.origin), -1) & jnp.all(jnp.isfinite(rays.direction), -1)
         need = (seg.num_emitted > 0) | (seg.lost().count > 0) | ~finite
         return need, background_color(cfg.shading, params, rays.origin, rays.direction, bg)
