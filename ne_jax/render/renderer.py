@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import operator
 from typing import Literal, NamedTuple
 
 import jax
@@ -465,21 +464,27 @@ def render_chunked_and_scene(cfg: RenderConfig, params: dict, scene: PointScene,
     if progress is None:
         progress = len(pieces) > 8
     render = lambda s, r, bg: _render_chunk_maybe_checked(cfg, params, s, r, bg, mesh)  # noqa: E731
-    outs, counts = [], []
-    for r, bg in tqdm(pieces, desc=desc, unit="chunk", disable=not progress, leave=False):
+    outs, used, counts, grows = [], [], [], 0
+
+    def settle(j: int) -> None:  # read chunk j's losses; grow if it lost with the current capacities
+        nonlocal scene, grows
+        counts[j] = outs[j].lost.counts()
+        if counts[j].total and used[j] == scene.capacities and grows < max_grow:
+            bigger = scene.grown(counts[j])
+            scene, grows = (bigger, grows + 1) if bigger is not None else (scene, grows)
+
+    for i, (r, bg) in enumerate(tqdm(pieces, desc=desc, unit="chunk", disable=not progress, leave=False)):
         outs.append(render(scene, r, bg))
-        if len(outs) > 1:  # one chunk in flight while the one before is read back
-            counts.append(outs[-2].lost.counts())
-    counts.append(outs[-1].lost.counts())
-    for _ in range(max_grow):  # the chunks that lost something, again with the capacities grown by all they lost
-        redo = [i for i, c in enumerate(counts) if c.total]
-        bigger = scene.grown(functools.reduce(operator.add, (counts[i] for i in redo), LostCounts())) if redo else None
-        if bigger is None:
-            break
-        scene = bigger
+        used.append(scene.capacities)
+        counts.append(None)
+        if i:  # one chunk in flight while the one before is read back
+            settle(i - 1)
+    settle(len(pieces) - 1)
+    # the chunks that lost with smaller capacities than the scene's now, again (which may grow them more)
+    while redo := [i for i, c in enumerate(counts) if c.total and used[i] != scene.capacities]:
         for i in redo:
-            outs[i] = render(scene, *pieces[i])
-            counts[i] = outs[i].lost.counts()
+            outs[i], used[i] = render(scene, *pieces[i]), scene.capacities
+            settle(i)
     hits = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:todo.size], *jax.device_get(outs))
     if todo.size < n:
         full = _background_out(color)
@@ -513,11 +518,12 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     rays that fit one chunk are rendered at once.)
     The result equals one :func:`render_rays` call over every ray.
 
-    A chunk that lost segments is rendered again with the scene's capacities grown by what every
-    chunk lost (:meth:`PointScene.grown`, at most ``max_grow`` rounds); what is still lost after that
-    is reported in the output's ``lost``. :func:`render_chunked_and_scene` also returns the grown
-    scene. ``progress``: show a progress bar (default: when more than 8 chunks are rendered).
-    Deterministic rules only (the stochastic rule is a training-time ablation: use :func:`render_rays`)."""
+    Capacities grow (:meth:`PointScene.grown`, at most ``max_grow`` times) as soon as a chunk is
+    seen to lose something, so later chunks render with them, and the chunks that lost are rendered
+    again with the grown ones; what is still lost after that is reported in the output's ``lost``.
+    :func:`render_chunked_and_scene` also returns the grown scene. ``progress``: show a progress bar
+    (default: when more than 8 chunks are rendered). Deterministic rules only (the stochastic rule is
+    a training-time ablation: use :func:`render_rays`)."""
     return render_chunked_and_scene(cfg, params, scene, rays, background, progress, desc, max_grow, mesh)[0]
 
 
