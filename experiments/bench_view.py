@@ -12,8 +12,7 @@
 With ``--reference-path REF`` (a checkout of older code: ``git worktree add REF COMMIT``) each version
 is measured ``--rounds`` times in fresh processes, alternating (``REF``'s ``ne_jax``, then this
 checkout's, then the other way round), and the tables give the best of each, new against
-reference, in the same run. Each version is timed as its viewer renders: the current viewer keeps the
-buffer sizes a frame grew to for later frames and edits (:attr:`ne_jax.view.Viewer.capacities`).
+reference, in the same run.
 
 Writes ``experiments/results/bench_view.{json,md}``::
 
@@ -76,24 +75,12 @@ def _orbit(model, n: int, size: int):
     return cams
 
 
-def _render(model, camera):
-    """``(seconds, model)``: one viewer frame of ``model``, and the model the viewer renders next: with
-    the buffer sizes the frame grew to, where the code keeps them (a reference may predate that)."""
-    from ne_jax.view.frames import render_frame
-
-    frame = render_frame(model, camera)
-    return frame[1], (frame[2] if len(frame) > 2 else model)
-
-
 def _fps(model, size: int, frames: int) -> dict:
-    from ne_jax.view.frames import camera_from_viewer
+    from ne_jax.view.frames import camera_from_viewer, render_frame
 
     cams = [camera_from_viewer(w, p, np.deg2rad(40), size, size) for w, p in _orbit(model, frames, size)]
-    first, model = _render(model, cams[0])  # compiles
-    times = []
-    for c in cams:
-        t, model = _render(model, c)
-        times.append(t)
+    _, first = render_frame(model, cams[0])  # compiles
+    times = [render_frame(model, c)[1] for c in cams]
     return {"size": size, "frames": frames, "first_frame_s": round(first, 3),
             "median_frame_s": round(float(np.median(times)), 4), "fps": round(1.0 / float(np.median(times)), 2),
             "min_frame_s": round(min(times), 4)}
@@ -131,18 +118,13 @@ def _resampled(model, n: int, seed: int = 0):
 def _edit_100k(model, n: int, size: int) -> dict:
     from ne_jax.edit.model import edit_model
     from ne_jax.view import edits as E
-    from ne_jax.view.frames import camera_from_viewer
+    from ne_jax.view.frames import camera_from_viewer, render_frame
 
     big, build_s = _resampled(model, n)
     (wxyz, pos), = _orbit(big, 1, size)
     cam = camera_from_viewer(wxyz, pos, np.deg2rad(40), size, size)
-    first, shown = _render(big, cam)
-    unedited, shown = _render(shown, cam)
-
-    def sized(edited):  # the viewer's edited model starts from the buffer sizes its frames needed
-        caps = shown.scene.capacities
-        return edited.replace(scene=edited.scene.replace(capacities=caps))
-
+    _, first = render_frame(big, cam)
+    _, unedited = render_frame(big, cam)
     pts = big.state.point_state(big.scene.points)
     edit = E.ViewEdit.identity(pts)
     xyz = edit.xyz[edit.remaining]
@@ -156,8 +138,8 @@ def _edit_100k(model, n: int, size: int) -> dict:
     t2 = time.perf_counter()
     edited, report = edit_model(big, moved.rows(), label="bench_view")
     t3 = time.perf_counter()
-    render_first, shown = _render(sized(edited), cam)
-    render_again, shown = _render(shown, cam)
+    _, render_first = render_frame(edited, cam)
+    _, render_again = render_frame(edited, cam)
     # a second edit, as in the viewer after its warm-up compiled the edit path: another part moved
     t4 = time.perf_counter()
     region2 = E.Region.make("box", (lo + hi) / 2 - (0, 0, 0.25 * (hi - lo)[2]), (hi - lo) * (1.1, 1.1, 0.5))
@@ -166,7 +148,7 @@ def _edit_100k(model, n: int, size: int) -> dict:
                                                                (0, 0, -20)))
     edited2, _ = edit_model(big, moved2.rows(), label="bench_view")
     t5 = time.perf_counter()
-    render_warm, shown = _render(sized(edited2), cam)
+    _, render_warm = render_frame(edited2, cam)
     return {"points": n, "selected": int(sel.size), "tree_build_s": round(build_s, 2),
             "select_s": round(t1 - t0, 4), "move_s": round(t2 - t1, 4), "edit_model_s": round(t3 - t2, 2),
             "edit_report": {k: report[k] for k in ("moved", "deleted", "good", "filled", "seconds") if k in report},

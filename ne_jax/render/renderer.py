@@ -439,11 +439,25 @@ def _in_chunks(rays: Rays, background: np.ndarray, index: np.ndarray, chunk: int
             for s in range(0, index.size, chunk)]
 
 
-def render_chunked_and_scene(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
-                             progress: bool | None = None, desc: str = "render", max_grow: int = 8,
-                             mesh: Mesh | None = None) -> tuple[RenderOut, PointScene]:
-    """:func:`render_chunked`, and the scene with the capacities the render grew to (keep it: a
-    later render of the same scene then neither loses nor compiles again)."""
+def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
+                   progress: bool | None = None, desc: str = "render", max_grow: int = 8,
+                   mesh: Mesh | None = None) -> RenderOut:
+    """Render any number of rays in compiled chunks of ``cfg.chunk`` (the last one padded), each
+    chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
+    chunk is rounded up to a multiple of the mesh's size).
+
+    In two stages: every ray is first walked through the tree alone (no packing, KNN or shading),
+    then only the rays that found a segment are rendered, gathered into full chunks; the others get
+    the colour behind the scene. An image whose object covers a quarter of it costs a quarter of the
+    KNN and shading work. (With ``cfg.checks`` every ray is rendered, so the checks see them all;
+    rays that fit one chunk are rendered at once.)
+    The result equals one :func:`render_rays` call over every ray.
+
+    Capacities grow (:meth:`PointScene.grown`, at most ``max_grow`` times) as soon as a chunk is
+    seen to lose something, so later chunks render with them, and the chunks that lost are rendered
+    again with the grown ones; what is still lost after that is reported in the output's ``lost``.
+    ``progress``: show a progress bar (default: when more than 8 chunks are rendered). Deterministic
+    rules only (the stochastic rule is a training-time ablation: use :func:`render_rays`)."""
     if cfg.quadrature.rule == "stochastic":
         raise ValueError("render_chunked renders deterministically; the 'stochastic' rule needs render_rays with a key")
     n = rays.num_rays
@@ -459,7 +473,7 @@ def render_chunked_and_scene(cfg: RenderConfig, params: dict, scene: PointScene,
         need, color = (np.concatenate(xs)[:n] for xs in zip(*surveyed))
         todo = np.flatnonzero(need)
     if todo.size == 0:
-        return jax.tree_util.tree_map(jnp.asarray, _background_out(background if color is None else color)), scene
+        return jax.tree_util.tree_map(jnp.asarray, _background_out(background if color is None else color))
     pieces = _in_chunks(rays, background, todo, chunk)
     if progress is None:
         progress = len(pieces) > 8
@@ -491,7 +505,7 @@ def render_chunked_and_scene(cfg: RenderConfig, params: dict, scene: PointScene,
         for a, part in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(hits)):
             a[todo] = part
         hits = full
-    return jax.tree_util.tree_map(jnp.asarray, hits), scene
+    return jax.tree_util.tree_map(jnp.asarray, hits)
 
 
 def _background_out(color: np.ndarray) -> RenderOut:
@@ -504,42 +518,11 @@ def _background_out(color: np.ndarray) -> RenderOut:
                      lost=Lost(frontier=i32(), slots=i32(), packing=i32(), emitted=i32()))
 
 
-def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Rays, background,
-                   progress: bool | None = None, desc: str = "render", max_grow: int = 8,
-                   mesh: Mesh | None = None) -> RenderOut:
-    """Render any number of rays in compiled chunks of ``cfg.chunk`` (the last one padded), each
-    chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
-    chunk is rounded up to a multiple of the mesh's size).
-
-    In two stages: every ray is first walked through the tree alone (no packing, KNN or shading),
-    then only the rays that found a segment are rendered, gathered into full chunks; the others get
-    the colour behind the scene. An image whose object covers a quarter of it costs a quarter of the
-    KNN and shading work. (With ``cfg.checks`` every ray is rendered, so the checks see them all;
-    rays that fit one chunk are rendered at once.)
-    The result equals one :func:`render_rays` call over every ray.
-
-    Capacities grow (:meth:`PointScene.grown`, at most ``max_grow`` times) as soon as a chunk is
-    seen to lose something, so later chunks render with them, and the chunks that lost are rendered
-    again with the grown ones; what is still lost after that is reported in the output's ``lost``.
-    :func:`render_chunked_and_scene` also returns the grown scene. ``progress``: show a progress bar
-    (default: when more than 8 chunks are rendered). Deterministic rules only (the stochastic rule is
-    a training-time ablation: use :func:`render_rays`)."""
-    return render_chunked_and_scene(cfg, params, scene, rays, background, progress, desc, max_grow, mesh)[0]
-
-
-def render_image_and_scene(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
-                           near: float, far: float, progress: bool | None = None,
-                           mesh: Mesh | None = None) -> tuple[RenderOut, PointScene]:
-    """:func:`render_image`, and the scene with the capacities the render grew to."""
-    rays = camera_rays(camera, near, far)
-    out, scene = render_chunked_and_scene(cfg, params, scene, rays, background, progress, desc="render image",
-                                          mesh=mesh)
-    h, w = camera.height, camera.width
-    return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out), scene
-
-
 def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
                  near: float, far: float, progress: bool | None = None, mesh: Mesh | None = None) -> RenderOut:
     """Render every pixel of ``camera`` (rays split over ``mesh``, see :func:`render_chunked`);
     fields are reshaped to images (``rgb`` ``[H, W, 3]``)."""
-    return render_image_and_scene(cfg, params, scene, camera, background, near, far, progress, mesh)[0]
+    rays = camera_rays(camera, near, far)
+    out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image", mesh=mesh)
+    h, w = camera.height, camera.width
+    return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import time
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,7 +18,7 @@ import numpy as np
 from ne_jax.data.nerf_synthetic import parse_background
 from ne_jax.data.rays import Camera
 from ne_jax.render.quadrature import at_test_time
-from ne_jax.render.renderer import RenderOut, render_image_and_scene
+from ne_jax.render.renderer import RenderOut, render_image
 from ne_jax.view.edits import matrix_to_quat, quat_to_matrix
 
 MODES = ("rgb", "depth", "normals", "opacity")
@@ -72,16 +71,13 @@ def look_at(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return matrix_to_quat(np.stack([right, np.cross(fwd, right), fwd], 1))
 
 
-def render_model(model, camera: Camera):
+def render_model(model, camera: Camera) -> RenderOut:
     """Render ``model`` (a :class:`~ne_jax.train.model.TrainedModel`) from ``camera`` as the evaluation
-    does (a stochastic quadrature rule is rendered un-jittered), fields as images ``[H, W, ...]``.
-    Returns ``(RenderOut, model)``: the model with the capacities the render grew to (render it next
-    time, and nothing is lost or compiled again)."""
+    does (a stochastic quadrature rule is rendered un-jittered), fields as images ``[H, W, ...]``."""
     cfg = model.run.render
     cfg = cfg.replace(quadrature=at_test_time(cfg.quadrature))
-    out, scene = render_image_and_scene(cfg, model.params, model.scene, camera, parse_background(model.background),
-                                        model.near, model.far, progress=False)
-    return out, model if scene is model.scene else model.replace(scene=scene)
+    return render_image(cfg, model.params, model.scene, camera, parse_background(model.background), model.near,
+                        model.far, progress=False)
 
 
 def to_image(out: RenderOut, mode: str, near: float, far: float, background=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -106,23 +102,15 @@ def to_image(out: RenderOut, mode: str, near: float, far: float, background=(1.0
     return np.clip(np.round(np.nan_to_num(img) * 255.0), 0, 255).astype(np.uint8)
 
 
-class Frame(NamedTuple):
-    """One frame: ``image [H, W, 3]`` uint8, the render's wall ``seconds`` (device work included) and
-    the ``model`` with the capacities the render grew to (see :func:`render_model`)."""
-
-    image: np.ndarray
-    seconds: float
-    model: object
-
-
-def render_frame(model, camera: Camera, mode: str = "rgb") -> Frame:
-    """One :class:`Frame` of ``model`` from ``camera`` in ``mode``."""
+def render_frame(model, camera: Camera, mode: str = "rgb") -> tuple[np.ndarray, float]:
+    """``(image [H, W, 3] uint8, seconds)``: one frame of ``model`` from ``camera`` in ``mode``, and
+    the wall time of the render (device work included)."""
     t0 = time.perf_counter()
-    out, grown = render_model(model, camera)
+    out = render_model(model, camera)
     bg = np.asarray(parse_background(model.background), np.float32)
     img = to_image(out, mode, model.near, model.far, bg)
-    return Frame(img, time.perf_counter() - t0, grown)
+    return img, time.perf_counter() - t0
 
 
-__all__ = ["MODES", "Frame", "camera_from_viewer", "fit_size", "look_at", "render_frame", "render_model", "to_image",
+__all__ = ["MODES", "camera_from_viewer", "fit_size", "look_at", "render_frame", "render_model", "to_image",
            "viewer_pose"]

@@ -95,9 +95,6 @@ class Viewer:
         self._history: list[E.ViewEdit] = []
         self.selection = np.zeros(0, np.int64)
         self._edited = model  # what is rendered: the model, or the model edited by self.edit
-        # the largest buffer sizes a render has needed so far: every model rendered starts from them,
-        # so a frame after an edit neither loses segments nor compiles the render again
-        self._capacities = model.scene.capacities
         self._scene_version = 0
         self._clients: dict[int, _ClientState] = {}
         self._stopped = False
@@ -156,15 +153,7 @@ class Viewer:
         with self._lock:
             model = self._edited
         with self._render_lock:
-            frame = render_frame(model, camera, mode)
-        self._keep_grown(model, frame.model)
-        return frame.image, frame.seconds
-
-    @property
-    def capacities(self):
-        """The buffer sizes (:class:`~ne_jax.geometry.capacity.Capacities`) every render starts from:
-        the largest a render of this viewer has needed so far."""
-        return self._capacities
+            return render_frame(model, camera, mode)
 
     @property
     def edited_model(self) -> TrainedModel:
@@ -239,10 +228,9 @@ class Viewer:
 
         t0 = time.perf_counter()
         if self.edit.changed(self._points):
-            edited, _ = edit_model(self.model, self.edit.rows(), ist=self._gui_ist.value, label="viewer")
+            self._edited, _ = edit_model(self.model, self.edit.rows(), ist=self._gui_ist.value, label="viewer")
         else:
-            edited = self.model
-        self._edited = self._sized(edited)
+            self._edited = self.model
         self._edit_seconds = time.perf_counter() - t0
         self._scene_version += 1
         self._show_points()
@@ -250,22 +238,6 @@ class Viewer:
         self._set_status(f"edit applied in {self._edit_seconds:.2f} s: {int(self.edit.deleted.sum())} deleted, "
                          f"{len(self._history)} step(s) to undo")
         self._redraw()
-
-    def _sized(self, model: TrainedModel) -> TrainedModel:
-        """``model`` with the largest capacities a render has needed so far."""
-        if model.scene.capacities == self._capacities:
-            return model
-        return model.replace(scene=model.scene.replace(capacities=self._capacities))
-
-    def _keep_grown(self, rendered: TrainedModel, grown: TrainedModel) -> None:
-        """After a render of ``rendered`` grew its capacities (into ``grown``): keep them for every
-        later render (capacities only grow, so the latest are the largest)."""
-        if grown is rendered:
-            return
-        with self._lock:
-            self._capacities = grown.scene.capacities
-            if self._edited is rendered:
-                self._edited = grown
 
     def _redraw(self) -> None:
         self._scene_version += 1
@@ -307,10 +279,8 @@ class Viewer:
             # a view of the whole cloud, so that the rays that meet it are rendered (and compiled)
             eye = self._center + self._extent * np.array([0.0, -1.5, 0.75])
             camera = camera_from_viewer(look_at(eye, self._center), eye, 0.7, self.max_side, self.max_side)
-            sized = self._sized(edited)
             with self._render_lock:
-                frame = render_frame(sized, camera)
-            self._keep_grown(sized, frame.model)
+                render_frame(edited, camera)
         except Exception:  # the viewer works without it; the first edit then compiles
             if not self._stopped:
                 self._set_status("warm-up failed: " + traceback.format_exc(limit=2).splitlines()[-1])
