@@ -303,8 +303,22 @@ def test_candidates_do_not_depend_on_the_cascade(name, monkeypatch):
         monkeypatch.undo()
 
 
-@pytest.mark.parametrize("n, depth, kind", [(1, 6, "normal"), (300, 12, "normal"), (5000, 16, "normal"),
-                                            (4096, 12, "rounded"), (777, 10, "signed_zeros")])
+SPLIT_CASES = [(1, 6, "normal"), (300, 12, "normal"), (5000, 16, "normal"), (4096, 12, "rounded"),
+               (777, 10, "signed_zeros")]
+
+
+def _split_cloud(n: int, kind: str) -> np.ndarray:
+    """``n`` normal points; ``rounded``: on a coarse grid (ties); ``signed_zeros``: y is -0.0 or 0.0."""
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=(n, 3))
+    if kind == "rounded":
+        x = np.round(2 * x)
+    if kind == "signed_zeros":
+        x[:, 1] = np.where(rng.random(n) < 0.5, -0.0, 0.0)
+    return x
+
+
+@pytest.mark.parametrize("n, depth, kind", SPLIT_CASES)
 def test_split_levels_match_the_reference(n, depth, kind):
     """``_split_levels`` (also used by ``carry_tree``'s local rebuilds) returns what the previous
     implementation returned, byte for byte: ties (rounded coordinates), signed zeros, and levels
@@ -313,20 +327,14 @@ def test_split_levels_match_the_reference(n, depth, kind):
 
     from .reference import _ref_split_levels
 
-    rng = np.random.default_rng(n)
-    x = rng.normal(size=(n, 3))
-    if kind == "rounded":
-        x = np.round(2 * x)
-    if kind == "signed_zeros":
-        x[:, 1] = np.where(rng.random(n) < 0.5, -0.0, 0.0)
+    x = _split_cloud(n, kind)
     a, b = _ref_split_levels(x, depth), _split_levels(x, depth)
     flat = lambda r: list(r[0]) + list(r[1]) + [r[2]] + [v for part in r[3] for v in part]  # noqa: E731
     for u, v in zip(flat(a), flat(b), strict=True):
         assert u.dtype == v.dtype and u.shape == v.shape and u.tobytes() == v.tobytes()
 
 
-@pytest.mark.parametrize("n, depth, kind", [(1, 6, "normal"), (300, 12, "normal"), (5000, 16, "normal"),
-                                            (4096, 12, "rounded"), (777, 10, "signed_zeros")])
+@pytest.mark.parametrize("n, depth, kind", SPLIT_CASES)
 def test_cell_boxes_match_the_reference(n, depth, kind):
     """``_cell_boxes`` (also used by ``carry_tree``) returns what the previous implementation
     returned, byte for byte: signed zeros on split faces, empty nodes, single-point levels."""
@@ -334,12 +342,7 @@ def test_cell_boxes_match_the_reference(n, depth, kind):
 
     from .reference import _ref_cell_boxes
 
-    rng = np.random.default_rng(n)
-    x = rng.normal(size=(n, 3))
-    if kind == "rounded":
-        x = np.round(2 * x)
-    if kind == "signed_zeros":
-        x[:, 1] = np.where(rng.random(n) < 0.5, -0.0, 0.0)
+    x = _split_cloud(n, kind)
     axes, values, _, (lo, hi, cnt) = _split_levels(x, depth)
     for margin in (0.0, 0.05):
         a = _ref_cell_boxes(CFG, axes, values, lo, hi, cnt, depth, margin)
