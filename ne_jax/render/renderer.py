@@ -483,9 +483,9 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     def settle(j: int) -> None:  # read chunk j's losses; grow if it lost with the current capacities
         nonlocal scene, grows
         counts[j] = outs[j].lost.counts()
-        if counts[j].total and used[j] == scene.capacities and grows < max_grow:
-            bigger = scene.grown(counts[j])
-            scene, grows = (bigger, grows + 1) if bigger is not None else (scene, grows)
+        bigger = scene.grown(counts[j]) if used[j] == scene.capacities and grows < max_grow else None
+        if bigger is not None:
+            scene, grows = bigger, grows + 1
 
     for i, (r, bg) in enumerate(tqdm(pieces, desc=desc, unit="chunk", disable=not progress, leave=False)):
         outs.append(render(scene, r, bg))
