@@ -396,6 +396,12 @@ def _render_chunk_maybe_checked(cfg: RenderConfig, params, scene, rays, backgrou
     return out
 
 
+SURVEY_CHUNKS = 4
+"""Render chunks per call of :func:`render_chunked`'s first stage (the walk alone): with one segment
+slot and no shading a call holds little memory, and fewer calls cost less to dispatch (measured in
+``experiments/bench_view.py``)."""
+
+
 def until_complete(scene: PointScene, call, lost_of, max_grow: int = 4):
     """``call(scene)``, and again with the scene's capacities grown (:meth:`PointScene.grown`) while
     ``lost_of(output)`` (a :class:`~ne_jax.geometry.capacity.Lost` or ``LostCounts``) says it lost
@@ -446,8 +452,8 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     chunk split over the devices of ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; the
     chunk is rounded up to a multiple of the mesh's size).
 
-    In two stages: every ray is first walked through the tree alone (no packing, KNN or shading),
-    then only the rays that found a segment are rendered, gathered into full chunks; the others get
+    In two stages: every ray is first walked through the tree alone (no packing, KNN or shading;
+    :data:`SURVEY_CHUNKS` chunks per call), then only the rays that found a segment are rendered, gathered into full chunks; the others get
     the colour behind the scene. An image whose object covers a quarter of it costs a quarter of the
     KNN and shading work. (With ``cfg.checks`` every ray is rendered, so the checks see them all;
     rays that fit one chunk are rendered at once.)
@@ -468,8 +474,9 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     if cfg.checks or n <= chunk:  # the checks see every ray; one chunk holds them all anyway
         todo, color = np.arange(n), None
     else:
+        walk = SURVEY_CHUNKS * chunk
         surveyed = jax.device_get([_survey_chunk(cfg, params, scene, r, bg, mesh=mesh)
-                                   for r, bg in _in_chunks(rays, background, np.arange(n), chunk)])
+                                   for r, bg in _in_chunks(rays, background, np.arange(n), walk)])
         need, color = (np.concatenate(xs)[:n] for xs in zip(*surveyed))
         todo = np.flatnonzero(need)
     if todo.size == 0:
