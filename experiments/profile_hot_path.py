@@ -241,7 +241,7 @@ def profile_stages(repeats: int, quick: bool) -> dict:
         eps = (tc.knn_eps_factor * tree.spacing).astype(jnp.float32)
         pts = sc.points
         pc, ci = add("candidate gather and KNN weights", kind, r,
-                     lambda p, t_, x, n_, w_: K._per_candidate_weights(p, t_, x, n_, w_, tc.knn_k, eps),
+                     lambda p, t_, x, n_, w_: K._per_candidate_weights(p, t_, x, n_, w_, tc.knn_k, eps)[:2],
                      pts, tree, pos, node, w)
         needed = values_needed(pts, cfg.shading.effects, aux)
 

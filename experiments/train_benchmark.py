@@ -95,6 +95,9 @@ def main(argv=None) -> None:
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
     parser.add_argument("--steps-per-epoch", type=int, default=None)
+    parser.add_argument("--density-falloff", type=float, default=None,
+                        help="gate the density by confidence and distance (KDTreeConfig.density_falloff); "
+                             "a changed config writes a new table: pass another --results folder")
     parser.add_argument("--runs", default=None, help="folder for the run directories (default: a temp folder)")
     parser.add_argument("--progress", action="store_true")
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of the JSON and Markdown results")
@@ -113,6 +116,9 @@ def main(argv=None) -> None:
     run = get_run_preset(args.preset)
     if args.epochs is not None or args.steps_per_epoch is not None:
         run = run.with_schedule(args.epochs, args.steps_per_epoch)
+    if args.density_falloff is not None:
+        kdtree = run.render.kdtree.replace(density_falloff=args.density_falloff)
+        run = run.replace(render=run.render.replace(kdtree=kdtree))
     started_at = commit(short=True)  # the code this process imported
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.root) if args.root else Path(tmp) / "bench"

@@ -121,6 +121,14 @@ class KDTreeConfig:
     """Distance offset in the KNN weights, in units of ``spacing`` (released code:
     ``1e-3 * unit_len``): ``log(dist + eps)`` stays finite at a point."""
 
+    density_falloff: float | None = None
+    """``None``: the KNN interpolation is normalised and nothing else. A number ``f``: the lookups
+    also return the *density gate* of every sample, ``sum_k w_k c_k phi(d_k)`` with the KNN weights
+    ``w``, the neighbours' confidences ``c`` and ``phi(d) = 1 - exp(-f spacing / d)`` (1 at a point,
+    ``f spacing / d`` far away), and the colour model's density is multiplied by it
+    (:mod:`ne_jax.geometry.knn`). Confidences then scale the density they support, as PointNeRF's
+    do, and a sample far from every point is nearly empty."""
+
     exact_chunk: int = 256
     """Samples per chunk in the brute-force exact KNN mode (memory: ``chunk * C`` distances)."""
 
@@ -152,6 +160,7 @@ class KDTreeConfig:
         need(self.min_hit_factor >= 0, "min_hit_factor", ">= 0")
         need(self.knn_eps_factor > 0, "knn_eps_factor", "> 0")
         need(self.exact_chunk >= 1, "exact_chunk", "an integer >= 1")
+        need(self.density_falloff is None or self.density_falloff > 0, "density_falloff", "None or > 0")
 
     @property
     def num_candidates(self) -> int:

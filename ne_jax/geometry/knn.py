@@ -17,6 +17,19 @@ function. ``log(conf)`` is ``log_sigmoid(conf_logit)``, accurate for confidences
 Neighbour slots that cannot be filled (``K`` larger than the alive points in the candidate set, or
 points deleted after the build) get weight 0; a sample with no alive neighbour interpolates to 0.
 
+With ``cfg.density_falloff = f`` (a number) the lookups also return the *density gate* of every
+sample (key :data:`GATE` of the result, ``[..., 1]``)::
+
+    g = sum_k w_k c_k phi(d_k),   phi(d) = 1 - exp(-f spacing / (d + eps)),
+
+``c = sigmoid(conf_logit)``: 1 x ``c`` at a point, ``f spacing / d`` far from every point. The
+renderer multiplies the density by it (:mod:`ne_jax.render.stage`), so a point's confidence scales
+the density it supports (PointNeRF's ``sigma = sum_i gamma_i w_i sigma_i``, where the confidence
+stays outside the normalisation) and the density falls off away from the cloud (the released code's
+``conf * softclamp(unit_len_nn / dist)`` factor has the same ``1 / d`` tail). Without the gate the
+weights sum to 1 whatever the confidences, so a point's confidence only matters against its
+neighbours', and a sample three spacings from the surface reads the surface's features.
+
 ``exact=True`` replaces the candidate sets by a brute-force search over all ``C`` points (chunked by
 ``cfg.exact_chunk`` samples): the global ``K`` nearest alive points, for reference and accuracy
 studies.
@@ -59,6 +72,34 @@ def knn_weights(conf_logit: jax.Array, dist: jax.Array, valid: jax.Array, eps) -
     e = jnp.where(valid, jnp.exp(jnp.where(valid, logit - m, 0.0)), 0.0)
     s = jnp.sum(e, axis=-1, keepdims=True)
     return e / jnp.where(s > 0, s, 1.0)
+
+
+GATE = "density_gate"
+"""Key of the density gate ``[..., 1]`` in the lookups' results (``cfg.density_falloff`` set)."""
+
+
+def falloff(dist: jax.Array, scale, eps) -> jax.Array:
+    """``phi(d) = 1 - exp(-scale / (d + eps))``: 1 at a point, ``scale / d`` far away; finite values
+    and gradients for every ``d >= 0``."""
+    return -jnp.expm1(-scale / (dist + eps))
+
+
+def _gate_scale(cfg: KDTreeConfig, tree: KDTree, dtype):
+    """``density_falloff * spacing``, or ``None`` without a gate."""
+    return None if cfg.density_falloff is None else (cfg.density_falloff * tree.spacing).astype(dtype)
+
+
+def neighbor_gate(state: PointState, nb: Neighbors, scale, eps) -> jax.Array:
+    """The density gate ``[..., 1]`` of samples with neighbours ``nb`` (module docstring)."""
+    conf = jax.nn.sigmoid(state.conf_logit[nb.index])
+    return jnp.sum(nb.weight * conf * falloff(nb.dist, scale, eps), axis=-1, keepdims=True)
+
+
+def _with_gate(values, gate):
+    if not isinstance(values, dict):
+        raise ValueError(f"values: expected a dict when cfg.density_falloff is set (the result gets {GATE!r}), "
+                         f"found {type(values).__name__}")
+    return {**values, GATE: gate}
 
 
 def _finish(state: PointState, points, index, valid, eps) -> Neighbors:
@@ -112,28 +153,36 @@ RANK_MAX_CANDIDATES = 32
 (see :func:`_per_candidate_weights`)."""
 
 
-def _per_candidate_weights(state: PointState, tree: KDTree, points, node, sample_weight, k: int, eps):
-    """The candidate search summed for integration: ``(per_candidate [B, Kc], ci [B, Kc])``, where
+def _per_candidate_weights(state: PointState, tree: KDTree, points, node, sample_weight, k: int, eps, scale=None):
+    """The candidate search summed for integration: ``(per_candidate [B, Kc], ci [B, Kc], gate)``, where
     ``per_candidate[b, c] = sum_s sample_weight[b, s] * (KNN weight of sample s on candidate c)`` (0 off
     its ``k`` nearest alive candidates). Up to :data:`RANK_MAX_CANDIDATES` candidates the ``k`` nearest
     are those whose :func:`~ne_jax.numerics.stable_ranks` by distance is below ``k`` (the set
     ``lax.top_k`` chooses), with dense weights and no gather or scatter of chosen slots (16 of 32: the
     selection 6-9x, the integration 1.9-2.2x faster than with ``top_k``); wider sets use ``lax.top_k``
-    (32 of 96: ranking is 7x slower). ``experiments/bench_knn.py``."""
+    (32 of 96: ranking is 7x slower). ``experiments/bench_knn.py``. ``gate``: ``[B, 1]``, the
+    quadrature of the density gate with falloff ``scale`` (``None`` without one)."""
     if tree.candidates.shape[-1] > RANK_MAX_CANDIDATES:
-        return _per_candidate_weights_top_k(state, tree, points, node, sample_weight, k, eps)
+        return _per_candidate_weights_top_k(state, tree, points, node, sample_weight, k, eps, scale)
     ci, ok, d2 = _candidate_distances(state, tree, points, node)
     key = jnp.where(ok[:, None, :], lax.stop_gradient(d2), jnp.inf)
     chosen = (stable_ranks(key) < k) & ok[:, None, :]
-    knn_w = knn_weights(state.conf_logit[ci][:, None, :], safe_sqrt(d2), chosen, eps)  # [B, S, Kc]
-    return jnp.einsum("bs,bsc->bc", sample_weight, knn_w), ci
+    dist = safe_sqrt(d2)
+    knn_w = knn_weights(state.conf_logit[ci][:, None, :], dist, chosen, eps)  # [B, S, Kc]
+    gate = None
+    if scale is not None:
+        conf = jax.nn.sigmoid(state.conf_logit[ci])[:, None, :]
+        gate = jnp.einsum("bs,bsc->b", sample_weight, knn_w * conf * falloff(dist, scale, eps))[:, None]
+    return jnp.einsum("bs,bsc->bc", sample_weight, knn_w), ci, gate
 
 
-def _per_candidate_weights_top_k(state: PointState, tree: KDTree, points, node, sample_weight, k: int, eps):
+def _per_candidate_weights_top_k(state: PointState, tree: KDTree, points, node, sample_weight, k: int, eps,
+                                 scale=None):
     """:func:`_per_candidate_weights` through ``lax.top_k`` and a scatter of the chosen slots."""
     nb, ci, j = _candidate_search(state, tree, points, node, k, eps)
     b = jnp.arange(ci.shape[0])[:, None, None]
-    return jnp.zeros(ci.shape, points.dtype).at[b, j].add(sample_weight[:, :, None] * nb.weight), ci
+    gate = None if scale is None else jnp.einsum("bs,bsk->bk", sample_weight, neighbor_gate(state, nb, scale, eps))
+    return jnp.zeros(ci.shape, points.dtype).at[b, j].add(sample_weight[:, :, None] * nb.weight), ci, gate
 
 
 def _exact_neighbors(state: PointState, points, k: int, chunk: int):
@@ -278,9 +327,11 @@ def knn_interpolate(
                 f"values: expected leaves of shape [C={state.capacity}, ...], found shape {leaf.shape}"
             )
     nb, dense = _search(state, tree, points, segment_node, cfg, exact)
-    if dense is not None:
-        return _interpolate_shared(*dense, values), nb
-    return interpolate(nb, values), nb
+    out = _interpolate_shared(*dense, values) if dense is not None else interpolate(nb, values)
+    scale = _gate_scale(cfg, tree, points.dtype)
+    if scale is not None:
+        out = _with_gate(out, neighbor_gate(state, nb, scale, (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)))
+    return out, nb
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "exact"))
@@ -320,11 +371,13 @@ def knn_integrate(
             f"found {cfg.num_candidates}"
         )
     eps = (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)
-    per_candidate, ci = _per_candidate_weights(state, tree, points, segment_node.astype(jnp.int32), weight,
-                                               cfg.knn_k, eps)
+    scale = _gate_scale(cfg, tree, points.dtype)
+    per_candidate, ci, gate = _per_candidate_weights(state, tree, points, segment_node.astype(jnp.int32), weight,
+                                                     cfg.knn_k, eps, scale)
 
     def one(v):
         g = v.reshape(v.shape[0], -1)[ci]  # [B, Kc, D]
         return jnp.einsum("bc,bcd->bd", per_candidate.astype(g.dtype), g).reshape(ci.shape[:1] + v.shape[1:])
 
-    return jax.tree_util.tree_map(one, values)
+    out = jax.tree_util.tree_map(one, values)
+    return out if gate is None else _with_gate(out, gate)

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from ne_jax.checks import stage_check
-from ne_jax.geometry.knn import knn_integrate, knn_interpolate
+from ne_jax.geometry.knn import GATE, knn_integrate, knn_interpolate
 from ne_jax.geometry.points import PointState
 from ne_jax.render.shading import Effects, shade
 
@@ -36,7 +36,8 @@ class Shaded:
     (``[...]`` = the batch shape: segments ``[B]``, samples ``[..., S]`` or points ``[C]``).
 
     Attributes:
-        sigma: ``[...]`` density per point spacing.
+        sigma: ``[...]`` density per point spacing (times the density gate when the lookup
+            returns one: ``cfg.kdtree.density_falloff``, :mod:`ne_jax.geometry.knn`).
         rgb: ``[..., 3]`` colour.
         pred_normal: ``[..., 3]`` the colour model's unit predicted normal.
         shading_normal: ``[..., 3]`` the normal the view was reflected about; ``None`` without one.
@@ -74,8 +75,9 @@ def _shade(cfg, params, values: dict, view_dir, nearest=None, checks: bool | Non
     checks = cfg.checks if checks is None else checks
     stage_check(checks, "interpolation", **{k: values.get(k) for k in ("feature", "normal", "ist")})
     out = shade(cfg.shading, params, values["feature"], values.get("normal"), view_dir, values.get("ist"))
-    stage_check(checks, "shading", sigma=out.sigma, rgb=out.rgb)
-    return Shaded(sigma=out.sigma, rgb=out.rgb, pred_normal=out.pred_normal, shading_normal=out.shading_normal,
+    sigma = out.sigma if GATE not in values else out.sigma * values[GATE][..., 0]
+    stage_check(checks, "shading", sigma=sigma, rgb=out.rgb)
+    return Shaded(sigma=sigma, rgb=out.rgb, pred_normal=out.pred_normal, shading_normal=out.shading_normal,
                   values=values, nearest=nearest)
 
 
@@ -103,9 +105,13 @@ def shade_samples(cfg, params, scene, pos: jax.Array, node: jax.Array, view_dir:
 
 def shade_own(cfg, params, points: PointState, view_dir: jax.Array) -> Shaded:
     """The ``own`` lookup: every point ``[C]`` shaded from its own values, seen along ``view_dir [C, 3]``
-    (interpolating over a single point gives the point itself, so confidences do not enter). Without
-    stage checks: Naive Plotting does not run under ``checkify``."""
-    return _shade(cfg, params, values_needed(points, cfg.shading.effects), view_dir, checks=False)
+    (interpolating over a single point gives the point itself, so confidences do not enter the
+    values; with a density gate, ``cfg.kdtree.density_falloff``, the gate at the point is its
+    confidence). Without stage checks: Naive Plotting does not run under ``checkify``."""
+    values = values_needed(points, cfg.shading.effects)
+    if cfg.kdtree.density_falloff is not None:
+        values[GATE] = points.confidence[:, None]
+    return _shade(cfg, params, values, view_dir, checks=False)
 
 
 __all__ = ["Shaded", "shade_own", "shade_samples", "shade_segments", "values_needed"]
