@@ -453,10 +453,10 @@ def render_chunked(cfg: RenderConfig, params: dict, scene: PointScene, rays: Ray
     chunk is rounded up to a multiple of the mesh's size).
 
     In two stages: every ray is first walked through the tree alone (no packing, KNN or shading;
-    :data:`SURVEY_CHUNKS` chunks per call), then only the rays that found a segment are rendered, gathered into full chunks; the others get
-    the colour behind the scene. An image whose object covers a quarter of it costs a quarter of the
-    KNN and shading work. (With ``cfg.checks`` every ray is rendered, so the checks see them all;
-    rays that fit one chunk are rendered at once.)
+    :data:`SURVEY_CHUNKS` chunks per call), then only the rays that found a segment are rendered,
+    gathered into full chunks; the others get the colour behind the scene. An image whose object
+    covers a quarter of it costs a quarter of the KNN and shading work. (With ``cfg.checks`` every
+    ray is rendered, so the checks see them all; rays that fit one chunk are rendered at once.)
     The result equals one :func:`render_rays` call over every ray.
 
     Capacities grow (:meth:`PointScene.grown`, at most ``max_grow`` times) as soon as a chunk is

@@ -11,8 +11,8 @@ import pytest
 
 from ne_jax.geometry.knn import GATE, knn_integrate, knn_interpolate, knn_neighbors
 from ne_jax.render.renderer import PointScene
-from ne_jax.render.stage import shade_own, shade_segments
 from ne_jax.render.shading import init_color_model
+from ne_jax.render.stage import shade_own, shade_segments
 
 from tests.mini_presets import tiny_render
 
@@ -84,21 +84,21 @@ def test_gate_bounds_a_point_and_far_away():
     assert np.all(gf < 2.0 * FALLOFF / 1e3 * 1.01)
 
 
-def test_gate_gradients_are_finite_at_the_hard_cases():
+@pytest.mark.parametrize("name", ["sphere_700", "mostly_deleted", "one_point"])
+def test_gate_gradients_are_finite_at_the_hard_cases(name):
     """Extreme confidences, a sample exactly on a point, deleted points: finite gradients of the
     gate in positions, confidences and sample positions, through both lookups."""
-    for name in ("sphere_700", "mostly_deleted", "one_point"):
-        state, tree, cfg, pts, node, w = _gated(name)
-        logits = state.conf_logit.at[::2].set(40.0).at[1::2].set(-40.0)
+    state, tree, cfg, pts, node, w = _gated(name)
+    logits = state.conf_logit.at[::2].set(40.0).at[1::2].set(-40.0)
 
-        def total(xyz, conf_logit, pts):
-            st = state.replace(xyz=xyz, conf_logit=conf_logit)
-            fused = knn_integrate(st, tree, pts, node, w, {"f": st.feature}, cfg)[GATE]
-            interp = knn_interpolate(st, tree, pts, node, cfg, False, {"f": st.feature})[0][GATE]
-            return jnp.sum(fused) + jnp.sum(interp)
+    def total(xyz, conf_logit, pts):
+        st = state.replace(xyz=xyz, conf_logit=conf_logit)
+        fused = knn_integrate(st, tree, pts, node, w, {"f": st.feature}, cfg)[GATE]
+        interp = knn_interpolate(st, tree, pts, node, cfg, False, {"f": st.feature})[0][GATE]
+        return jnp.sum(fused) + jnp.sum(interp)
 
-        grads = jax.grad(total, argnums=(0, 1, 2))(state.xyz, logits, pts)
-        assert all(np.isfinite(np.asarray(g)).all() for g in grads), name
+    grads = jax.grad(total, argnums=(0, 1, 2))(state.xyz, logits, pts)
+    assert all(np.isfinite(np.asarray(g)).all() for g in grads)
 
 
 def test_density_is_multiplied_by_the_gate_and_absent_without_a_falloff():
