@@ -1,0 +1,130 @@
+"""What the density gate (``KDTreeConfig.density_falloff``) does to a preset, on both benchmarks.
+
+For each benchmark root (``--root NAME=DIR``: the ray-cast and the path-traced variant of a preset)
+the preset is trained twice with :mod:`experiments.train_benchmark` (``baseline``: the preset as it
+is; ``gated``: with ``--density-falloff F``), on the same scenes in one invocation, and the two are
+compared scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
+the seen-surface Chamfer ratio, and where the final confidences sit (share below the pruning
+threshold 0.1, share above 0.9, median). Without a gate the confidences cannot move the density
+(the KNN weights are normalised), so they stay at their initial 0.5 and pruning never fires; the
+table shows whether the gate changes that and what it costs.
+
+    python -m experiments.density_gate_study --preset tiny --root tiny=BENCH/tiny --root tiny_pt=BENCH/tiny_pt \\
+        --runs RUNS --falloff 1.0
+
+Runs go to ``RUNS/<name>/<config>/`` (``runs/`` and ``results/``); a stopped study continues where it
+stopped (finished configs are read back, a stopped one is resumed). Writes
+``experiments/results/density_gate_<preset>.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from experiments import train_benchmark
+from experiments.common import benchmark_suffix, command, commit, write_results
+from ne_jax.benchmark.scenes import SCENES
+
+RESULTS = Path(__file__).resolve().parent / "results"
+CONFIGS = ("baseline", "gated")
+
+
+def _train(preset: str, root: Path, scenes: list[str], out: Path, falloff: float | None, schedule: list[str]) -> dict:
+    """The ``train_benchmark`` results of one config (trained now, or read back when complete)."""
+    name = preset + benchmark_suffix(root, scenes)
+    results = out / "results" / f"train_benchmark_{name}.json"
+    if results.is_file():
+        done = json.loads(results.read_text())
+        if set(scenes) <= set(done["scenes"]):
+            return done
+    argv = ["--preset", preset, "--root", str(root), "--runs", str(out / "runs"), "--results", str(out / "results"),
+            "--scenes", *scenes, *schedule]
+    if falloff is not None:
+        argv += ["--density-falloff", str(falloff)]
+    if (out / "runs").is_dir():
+        argv.append("--resume")
+    train_benchmark.main(argv)
+    return json.loads(results.read_text())
+
+
+def confidence_summary(run_dir: Path) -> dict:
+    """Where the final alive points' confidences sit."""
+    from ne_jax.train.model import load_trained
+
+    points = load_trained(run_dir).scene.points
+    conf = np.asarray(points.confidence)[np.asarray(points.alive)]
+    return {"below_0.1": round(float(np.mean(conf < 0.1)), 4), "above_0.9": round(float(np.mean(conf > 0.9)), 4),
+            "median": round(float(np.median(conf)), 4)}
+
+
+def _row(name: str, cfg: str, scene: str, res: dict, conf: dict) -> str:
+    s = res["scenes"][scene]
+    return (f"| {name} | {scene} | {cfg} | {s['test_psnr']:.2f} | {s['test_ssim']:.3f} | {s['train_seconds']:.0f} | "
+            f"{s['final_points']} | {s['grown']} | {s['pruned']} | {s['chamfer_seen_ratio']:.2f} | "
+            f"{conf['below_0.1']:.1%} | {conf['above_0.9']:.1%} | {conf['median']:.2f} |")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", default="tiny", choices=["tiny", "default"])
+    parser.add_argument("--root", action="append", required=True, metavar="NAME=DIR",
+                        help="a benchmark folder of the preset (repeat: ray-cast and path-traced)")
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--runs", type=Path, required=True, help="folder of the runs (kept; a study resumes)")
+    parser.add_argument("--falloff", type=float, default=1.0, help="KDTreeConfig.density_falloff of the gated runs")
+    parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument("--epochs", type=int, default=None, help="override the preset's epochs (smoke tests)")
+    parser.add_argument("--steps-per-epoch", type=int, default=None)
+    args = parser.parse_args(argv)
+    schedule = [] if args.epochs is None else ["--epochs", str(args.epochs)]
+    schedule += [] if args.steps_per_epoch is None else ["--steps-per-epoch", str(args.steps_per_epoch)]
+    roots = {}
+    for item in args.root:
+        name, sep, path = item.partition("=")
+        if not sep or not (Path(path) / args.scenes[0] / "scene.json").is_file():
+            parser.error(f"--root {item!r}: expected NAME=DIR with DIR/{args.scenes[0]}/scene.json")
+        roots[name] = Path(path)
+
+    started = commit()
+    table, out = [], {}
+    for name, root in roots.items():
+        for cfg in CONFIGS:
+            folder = args.runs / name / cfg
+            res = _train(args.preset, root, args.scenes, folder, args.falloff if cfg == "gated" else None, schedule)
+            confs = {s: confidence_summary(folder / "runs" / s) for s in args.scenes}
+            out.setdefault(name, {})[cfg] = {"config_key": res["config_key"], "commit": res["commit"],
+                                             "scenes": {s: {**res["scenes"][s], "confidence": confs[s]}
+                                                        for s in args.scenes}}
+            table += [_row(name, cfg, s, res, confs[s]) for s in args.scenes]
+    means = []
+    for name in roots:
+        for cfg in CONFIGS:
+            psnr = [out[name][cfg]["scenes"][s]["test_psnr"] for s in args.scenes]
+            secs = [out[name][cfg]["scenes"][s]["train_seconds"] for s in args.scenes]
+            means.append(f"| {name} | {cfg} | {np.mean(psnr):.2f} | {min(psnr):.2f} | {np.mean(secs):.0f} |")
+    res = {"what": "density gate study", "preset": args.preset, "falloff": args.falloff, "commit": started,
+           "command": command("experiments.density_gate_study", argv), "machine": {"platform": platform.platform()},
+           "benchmarks": out}
+    md = "\n".join([
+        f"The density gate (`KDTreeConfig.density_falloff = {args.falloff}`) against the `{args.preset}` preset as it "
+        f"is, on {', '.join(roots)}; commit {started}; `{res['command']}`.",
+        "",
+        "| benchmark | config | mean test PSNR | worst scene | mean train s |",
+        "|---|---|---:|---:|---:|",
+        *means,
+        "",
+        "| benchmark | scene | config | test PSNR | SSIM | train s | final points | grown | pruned | "
+        "seen Chamfer ratio | conf < 0.1 | conf > 0.9 | median conf |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        *table,
+    ])
+    write_results(args.results, f"density_gate_{args.preset}", res, md)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""The density gate study trains both configs on each benchmark root and tables them."""
+
+from __future__ import annotations
+
+import json
+
+from experiments import density_gate_study
+
+from tests.mini_presets import TRAIN_SCENE
+
+
+def test_two_step_study_tables_both_configs(tmp_path):
+    from ne_jax.benchmark.generate import generate_scene
+
+    generate_scene("glossy", TRAIN_SCENE, tmp_path / "bench", seed=0)
+    argv = ["--root", f"tiny={tmp_path / 'bench'}", "--scenes", "glossy", "--runs", str(tmp_path / "runs"),
+            "--epochs", "1", "--steps-per-epoch", "2", "--results", str(tmp_path / "out")]
+    density_gate_study.main(argv)
+    res = json.loads((tmp_path / "out" / "density_gate_tiny.json").read_text())
+    base, gated = (res["benchmarks"]["tiny"][c] for c in ("baseline", "gated"))
+    assert base["config_key"] != gated["config_key"]
+    for cfg in (base, gated):
+        s = cfg["scenes"]["glossy"]
+        assert s["steps"] == 2 and set(s["confidence"]) == {"below_0.1", "above_0.9", "median"}
+    md = (tmp_path / "out" / "density_gate_tiny.md").read_text()
+    assert "| tiny | glossy | baseline |" in md and "| tiny | glossy | gated |" in md
+    # a second invocation reads the finished configs back instead of training again
+    metrics = [tmp_path / "runs" / "tiny" / c / "runs" / "glossy" / "metrics.json" for c in ("baseline", "gated")]
+    stamps = [m.stat().st_mtime_ns for m in metrics]
+    density_gate_study.main(argv[:-2] + ["--results", str(tmp_path / "again")])
+    assert [m.stat().st_mtime_ns for m in metrics] == stamps
+    assert (tmp_path / "again" / "density_gate_tiny.md").read_text().count("| glossy |") == 2
