@@ -2,7 +2,7 @@
 
 For each benchmark root (``--root NAME=DIR``: the ray-cast and the path-traced variant of a preset)
 the preset is trained twice with :mod:`experiments.train_benchmark` (``baseline``: the preset as it
-is; ``gated``: with ``--density-falloff F``), on the same scenes in one invocation, and the two are
+is; ``gated``: with ``--density-falloff F`` and, if given, ``--confidence-lr L``), on the same scenes in one invocation, and the two are
 compared scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
 the seen-surface Chamfer ratio, and where the final confidences sit (share below the pruning
 threshold 0.1, share above 0.9, median). Without a gate the confidences cannot move the density
@@ -34,7 +34,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 CONFIGS = ("baseline", "gated")
 
 
-def _train(preset: str, root: Path, scenes: list[str], out: Path, falloff: float | None, schedule: list[str]) -> dict:
+def _train(preset: str, root: Path, scenes: list[str], out: Path, extra: list[str]) -> dict:
     """The ``train_benchmark`` results of one config (trained now, or read back when complete)."""
     name = preset + benchmark_suffix(root, scenes)
     results = out / "results" / f"train_benchmark_{name}.json"
@@ -43,9 +43,7 @@ def _train(preset: str, root: Path, scenes: list[str], out: Path, falloff: float
         if set(scenes) <= set(done["scenes"]):
             return done
     argv = ["--preset", preset, "--root", str(root), "--runs", str(out / "runs"), "--results", str(out / "results"),
-            "--scenes", *scenes, *schedule]
-    if falloff is not None:
-        argv += ["--density-falloff", str(falloff)]
+            "--scenes", *scenes, *extra]
     if (out / "runs").is_dir():
         argv.append("--resume")
     train_benchmark.main(argv)
@@ -77,12 +75,16 @@ def main(argv=None) -> None:
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--runs", type=Path, required=True, help="folder of the runs (kept; a study resumes)")
     parser.add_argument("--falloff", type=float, default=1.0, help="KDTreeConfig.density_falloff of the gated runs")
+    parser.add_argument("--confidence-lr", type=float, default=None,
+                        help="TrainConfig.confidence_lr of the gated runs (default: the preset's)")
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument("--epochs", type=int, default=None, help="override the preset's epochs (smoke tests)")
     parser.add_argument("--steps-per-epoch", type=int, default=None)
     args = parser.parse_args(argv)
     schedule = [] if args.epochs is None else ["--epochs", str(args.epochs)]
     schedule += [] if args.steps_per_epoch is None else ["--steps-per-epoch", str(args.steps_per_epoch)]
+    gated = ["--density-falloff", str(args.falloff)]
+    gated += [] if args.confidence_lr is None else ["--confidence-lr", str(args.confidence_lr)]
     roots = {}
     for item in args.root:
         name, sep, path = item.partition("=")
@@ -95,7 +97,7 @@ def main(argv=None) -> None:
     for name, root in roots.items():
         for cfg in CONFIGS:
             folder = args.runs / name / cfg
-            res = _train(args.preset, root, args.scenes, folder, args.falloff if cfg == "gated" else None, schedule)
+            res = _train(args.preset, root, args.scenes, folder, schedule + (gated if cfg == "gated" else []))
             confs = {s: confidence_summary(folder / "runs" / s) for s in args.scenes}
             out.setdefault(name, {})[cfg] = {"config_key": res["config_key"], "commit": res["commit"],
                                              "scenes": {s: {**res["scenes"][s], "confidence": confs[s]}
@@ -107,11 +109,14 @@ def main(argv=None) -> None:
             psnr = [out[name][cfg]["scenes"][s]["test_psnr"] for s in args.scenes]
             secs = [out[name][cfg]["scenes"][s]["train_seconds"] for s in args.scenes]
             means.append(f"| {name} | {cfg} | {np.mean(psnr):.2f} | {min(psnr):.2f} | {np.mean(secs):.0f} |")
-    res = {"what": "density gate study", "preset": args.preset, "falloff": args.falloff, "commit": started,
+    res = {"what": "density gate study", "preset": args.preset, "falloff": args.falloff,
+           "confidence_lr": args.confidence_lr, "commit": started,
            "command": command("experiments.density_gate_study", argv), "machine": {"platform": platform.platform()},
            "benchmarks": out}
     md = "\n".join([
-        f"The density gate (`KDTreeConfig.density_falloff = {args.falloff}`) against the `{args.preset}` preset as it "
+        f"The density gate (`KDTreeConfig.density_falloff = {args.falloff}`"
+        + ("" if args.confidence_lr is None else f", `TrainConfig.confidence_lr = {args.confidence_lr}`")
+        + f") against the `{args.preset}` preset as it "
         f"is, on {', '.join(roots)}; commit {started}; `{res['command']}`.",
         "",
         "| benchmark | config | mean test PSNR | worst scene | mean train s |",

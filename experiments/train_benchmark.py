@@ -98,6 +98,8 @@ def main(argv=None) -> None:
     parser.add_argument("--density-falloff", type=float, default=None,
                         help="gate the density by confidence and distance (KDTreeConfig.density_falloff); "
                              "a changed config writes a new table: pass another --results folder")
+    parser.add_argument("--confidence-lr", type=float, default=None,
+                        help="multiplier of the confidence logits' learning rate (TrainConfig.confidence_lr)")
     parser.add_argument("--runs", default=None, help="folder for the run directories (default: a temp folder)")
     parser.add_argument("--progress", action="store_true")
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of the JSON and Markdown results")
@@ -119,6 +121,8 @@ def main(argv=None) -> None:
     if args.density_falloff is not None:
         kdtree = run.render.kdtree.replace(density_falloff=args.density_falloff)
         run = run.replace(render=run.render.replace(kdtree=kdtree))
+    if args.confidence_lr is not None:
+        run = run.replace(train=run.train.replace(confidence_lr=args.confidence_lr))
     started_at = commit(short=True)  # the code this process imported
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.root) if args.root else Path(tmp) / "bench"

@@ -44,6 +44,11 @@ class TrainConfig:
     """Adam's second-moment decay."""
     adam_eps: float = 1e-8
     """Adam's epsilon."""
+    confidence_lr: float = 1.0
+    """Multiplier of the learning rate of the confidence logits (Adam's steps of ``conf_logit`` are
+    scaled by it). With a density gate (``KDTreeConfig.density_falloff``) the confidences move the
+    density, and a larger rate lets them reach the pruning threshold within a short schedule; 1:
+    every trainable alike (and Adam's state is the plain ``optax.adam`` one)."""
     train_ist: bool = False
     """Fine-tuning an edited model: the per-point ISTs are trainable too (paper Sec. 4); pair it
     with ``loss.ist_orthogonality > 0`` to keep them rotations. Off: the ISTs are fixed inputs."""
@@ -56,14 +61,26 @@ class TrainConfig:
         if not 0.0 <= self.lr_final_fraction <= 1.0:
             raise ValueError("TrainConfig.lr_final_fraction: expected a value in [0, 1], "
                              f"found {self.lr_final_fraction}")
+        if not self.confidence_lr > 0:
+            raise ValueError(f"TrainConfig.confidence_lr: expected > 0, found {self.confidence_lr}")
 
     def schedule(self) -> optax.Schedule:
         """Learning rate by step: cosine decay from ``lr`` to ``lr * lr_final_fraction``."""
         return optax.cosine_decay_schedule(self.lr, int(self.total_steps), alpha=self.lr_final_fraction)
 
     def optimizer(self) -> optax.GradientTransformation:
-        """Adam with :meth:`schedule`, on all trainables alike."""
-        return optax.adam(self.schedule(), b1=self.adam_b1, b2=self.adam_b2, eps=self.adam_eps)
+        """Adam with :meth:`schedule` on ``{"params": ..., "points": ...}``, the confidence logits'
+        steps scaled by :attr:`confidence_lr`."""
+        adam = optax.adam(self.schedule(), b1=self.adam_b1, b2=self.adam_b2, eps=self.adam_eps)
+        if self.confidence_lr == 1.0:
+            return adam
+        k = self.confidence_lr
+
+        def scale(updates, state, params=None):
+            pts = updates["points"]
+            return {**updates, "points": {**pts, "conf_logit": pts["conf_logit"] * k}}, state
+
+        return optax.chain(adam, optax.GradientTransformation(lambda params: optax.EmptyState(), scale))
 
     def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)
