@@ -2,8 +2,8 @@
 
 For each benchmark root (``--root NAME=DIR``: the ray-cast and the path-traced variant of a preset)
 the preset is trained twice with :mod:`experiments.train_benchmark` (``baseline``: the preset as it
-is; ``gated``: with ``--density-falloff F`` and, if given, ``--confidence-lr L``), on the same scenes in one invocation, and the two are
-compared scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
+is; ``gated``: with ``--density-falloff F`` and, if given, ``--confidence-lr L``), on the same scenes
+in one invocation, and the two are compared scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
 the seen-surface Chamfer ratio, and where the final confidences sit (share below the pruning
 threshold 0.1, share above 0.9, median). Without a gate the confidences cannot move the density
 (the KNN weights are normalised), so they stay at their initial 0.5 and pruning never fires; the
