@@ -22,6 +22,13 @@ out of :func:`config_key` and of :func:`config_diff`, since it changes only what
 buffer, which is counted."""
 
 
+KEY_OMITS_DEFAULT = "key_omits_default"
+"""Metadata flag of a config field added after configs were keyed (``dataclasses.field(default=...,
+metadata={KEY_OMITS_DEFAULT: True})``): at its default it is left out of :func:`config_key`, so
+every config that does not use it keeps the key its results were recorded under; ``config.json``
+holds it like any field."""
+
+
 def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
     """A frozen config dataclass as nested JSON data with the type information to rebuild it.
 
@@ -32,7 +39,8 @@ def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
         out = {"__type__": f"{type(cfg).__module__}:{type(cfg).__qualname__}"}
         for f in dataclasses.fields(cfg):
             value = getattr(cfg, f.name)
-            if _for_key and f.metadata.get(BUFFER_SIZES):
+            omitted = f.metadata.get(BUFFER_SIZES) or (f.metadata.get(KEY_OMITS_DEFAULT) and value == f.default)
+            if _for_key and omitted:
                 continue
             out[f.name] = config_to_json(value, _for_key)
         return out

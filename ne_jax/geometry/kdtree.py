@@ -57,6 +57,7 @@ import numpy as np
 from flax import struct
 from scipy.spatial import cKDTree
 
+from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.fields import require
 
 
@@ -121,7 +122,7 @@ class KDTreeConfig:
     """Distance offset in the KNN weights, in units of ``spacing`` (released code:
     ``1e-3 * unit_len``): ``log(dist + eps)`` stays finite at a point."""
 
-    density_falloff: float | None = None
+    density_falloff: float | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
     """``None``: the KNN interpolation is normalised and nothing else. A number ``f``: the lookups
     also return the *density gate* of every sample, ``sum_k w_k c_k phi(d_k)`` with the KNN weights
     ``w``, the neighbours' confidences ``c`` and ``phi(d) = 1 - exp(-f spacing / d)`` (1 at a point,

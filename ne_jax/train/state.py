@@ -19,6 +19,7 @@ import numpy as np
 import optax
 from flax import struct
 
+from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import init_color_model
@@ -44,7 +45,7 @@ class TrainConfig:
     """Adam's second-moment decay."""
     adam_eps: float = 1e-8
     """Adam's epsilon."""
-    confidence_lr: float = 1.0
+    confidence_lr: float = dataclasses.field(default=1.0, metadata={KEY_OMITS_DEFAULT: True})
     """Multiplier of the learning rate of the confidence logits (Adam's steps of ``conf_logit`` are
     scaled by it). With a density gate (``KDTreeConfig.density_falloff``) the confidences move the
     density, and a larger rate lets them reach the pruning threshold within a short schedule; 1:

@@ -40,6 +40,21 @@ def test_buffer_sizes_are_saved_but_not_settings():
         "seed: checkpoint 1, run 0"]
 
 
+def test_a_field_added_after_keying_changes_the_key_only_when_set():
+    """``KEY_OMITS_DEFAULT`` fields (``KDTreeConfig.density_falloff``, ``TrainConfig.confidence_lr``)
+    leave every config that keeps their default under its recorded key, are written to config.json,
+    and change the key when set."""
+    from ne_jax.train.run import RunConfig
+
+    run = RunConfig.tiny()
+    assert "density_falloff" in cj.config_to_json(run)["render"]["kdtree"]
+    assert "density_falloff" not in json.dumps(cj.config_to_json(run, _for_key=True))
+    gated = run.replace(render=run.render.replace(kdtree=run.render.kdtree.replace(density_falloff=1.0)))
+    faster = run.replace(train=run.train.replace(confidence_lr=10.0))
+    assert len({cj.config_key(run), cj.config_key(gated), cj.config_key(faster)}) == 3
+    assert cj.config_from_json(json.loads(json.dumps(cj.config_to_json(gated)))) == gated
+
+
 def test_a_config_with_buffer_sizes_among_its_settings_reads_back():
     """config.json files that stored the buffer sizes in the tree and render configs read back with
     them moved to ``RunConfig.capacities`` (and are no difference to the same run written now)."""
