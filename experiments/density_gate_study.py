@@ -2,15 +2,16 @@
 
 For each benchmark root (``--root NAME=DIR``: the ray-cast and the path-traced variant of a preset)
 the preset is trained twice with :mod:`experiments.train_benchmark` (``baseline``: the preset as it
-is; ``gated``: with ``--density-falloff F`` and, if given, ``--confidence-lr L``), on the same scenes
-in one invocation, and the two are compared scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
+is; ``gated``: with the ``--gated FIELD.PATH=VALUE`` changes, by default the gate alone,
+``render.kdtree.density_falloff=1.0``), on the same scenes in one invocation, and the two are
+compared scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
 the seen-surface Chamfer ratio, and where the final confidences sit (share below the pruning
 threshold 0.1, share above 0.9, median). Without a gate the confidences cannot move the density
 (the KNN weights are normalised), so they stay at their initial 0.5 and pruning never fires; the
 table shows whether the gate changes that and what it costs.
 
     python -m experiments.density_gate_study --preset tiny --root tiny=BENCH/tiny --root tiny_pt=BENCH/tiny_pt \\
-        --runs RUNS --falloff 1.0
+        --runs RUNS --gated render.kdtree.density_falloff=1.0 --gated train.confidence_lr=10
 
 Runs go to ``RUNS/<name>/<config>/`` (``runs/`` and ``results/``); a stopped study continues where it
 stopped (finished configs are read back, a stopped one is resumed). Writes
@@ -74,17 +75,17 @@ def main(argv=None) -> None:
                         help="a benchmark folder of the preset (repeat: ray-cast and path-traced)")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--runs", type=Path, required=True, help="folder of the runs (kept; a study resumes)")
-    parser.add_argument("--falloff", type=float, default=1.0, help="KDTreeConfig.density_falloff of the gated runs")
-    parser.add_argument("--confidence-lr", type=float, default=None,
-                        help="TrainConfig.confidence_lr of the gated runs (default: the preset's)")
+    parser.add_argument("--gated", action="append", default=None, metavar="FIELD.PATH=VALUE",
+                        help="a change of the gated runs' RunConfig (repeatable; default "
+                             "render.kdtree.density_falloff=1.0)")
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument("--epochs", type=int, default=None, help="override the preset's epochs (smoke tests)")
     parser.add_argument("--steps-per-epoch", type=int, default=None)
     args = parser.parse_args(argv)
     schedule = [] if args.epochs is None else ["--epochs", str(args.epochs)]
     schedule += [] if args.steps_per_epoch is None else ["--steps-per-epoch", str(args.steps_per_epoch)]
-    gated = ["--density-falloff", str(args.falloff)]
-    gated += [] if args.confidence_lr is None else ["--confidence-lr", str(args.confidence_lr)]
+    changes = args.gated or ["render.kdtree.density_falloff=1.0"]
+    gated = [a for change in changes for a in ("--set", change)]
     roots = {}
     for item in args.root:
         name, sep, path = item.partition("=")
@@ -109,14 +110,11 @@ def main(argv=None) -> None:
             psnr = [out[name][cfg]["scenes"][s]["test_psnr"] for s in args.scenes]
             secs = [out[name][cfg]["scenes"][s]["train_seconds"] for s in args.scenes]
             means.append(f"| {name} | {cfg} | {np.mean(psnr):.2f} | {min(psnr):.2f} | {np.mean(secs):.0f} |")
-    res = {"what": "density gate study", "preset": args.preset, "falloff": args.falloff,
-           "confidence_lr": args.confidence_lr, "commit": started,
+    res = {"what": "density gate study", "preset": args.preset, "gated": changes, "commit": started,
            "command": command("experiments.density_gate_study", argv), "machine": {"platform": platform.platform()},
            "benchmarks": out}
     md = "\n".join([
-        f"The density gate (`KDTreeConfig.density_falloff = {args.falloff}`"
-        + ("" if args.confidence_lr is None else f", `TrainConfig.confidence_lr = {args.confidence_lr}`")
-        + f") against the `{args.preset}` preset as it "
+        f"The gated config ({', '.join(f'`{c}`' for c in changes)}) against the `{args.preset}` preset as it "
         f"is, on {', '.join(roots)}; commit {started}; `{res['command']}`.",
         "",
         "| benchmark | config | mean test PSNR | worst scene | mean train s |",

@@ -34,7 +34,7 @@ from experiments.common import benchmark_suffix
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.benchmark.generate import generate_benchmark, get_preset, seen_surface_samples
 from ne_jax.benchmark.scenes import SCENES
-from ne_jax.config_json import config_key
+from ne_jax.config_json import config_key, config_set
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.eval import evaluate_model, save_images
 from ne_jax.pointcloud.init import Views, ground_truth_cloud
@@ -95,11 +95,10 @@ def main(argv=None) -> None:
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
     parser.add_argument("--steps-per-epoch", type=int, default=None)
-    parser.add_argument("--density-falloff", type=float, default=None,
-                        help="gate the density by confidence and distance (KDTreeConfig.density_falloff); "
-                             "a changed config writes a new table: pass another --results folder")
-    parser.add_argument("--confidence-lr", type=float, default=None,
-                        help="multiplier of the confidence logits' learning rate (TrainConfig.confidence_lr)")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD.PATH=VALUE",
+                        help="change one field of the preset's RunConfig (repeatable), e.g. "
+                             "render.kdtree.density_falloff=1.0; a changed config writes a new table: pass "
+                             "another --results folder")
     parser.add_argument("--runs", default=None, help="folder for the run directories (default: a temp folder)")
     parser.add_argument("--progress", action="store_true")
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of the JSON and Markdown results")
@@ -118,11 +117,11 @@ def main(argv=None) -> None:
     run = get_run_preset(args.preset)
     if args.epochs is not None or args.steps_per_epoch is not None:
         run = run.with_schedule(args.epochs, args.steps_per_epoch)
-    if args.density_falloff is not None:
-        kdtree = run.render.kdtree.replace(density_falloff=args.density_falloff)
-        run = run.replace(render=run.render.replace(kdtree=kdtree))
-    if args.confidence_lr is not None:
-        run = run.replace(train=run.train.replace(confidence_lr=args.confidence_lr))
+    for assignment in args.set:
+        try:
+            run = config_set(run, assignment)
+        except ValueError as e:
+            parser.error(f"--set: {e}")
     started_at = commit(short=True)  # the code this process imported
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.root) if args.root else Path(tmp) / "bench"

@@ -213,3 +213,33 @@ def _show(v: Any) -> str:
     if isinstance(v, dict) and "__tuple__" in v:
         return repr(tuple(v["__tuple__"]))
     return repr(v)
+
+
+def config_set(cfg: Any, assignment: str) -> Any:
+    """``cfg`` with one nested field set from ``"dotted.path=VALUE"`` (``VALUE`` read as JSON:
+    ``1.0``, ``null``, ``true``, ``"text"``; a bare word is a string), e.g.
+    ``config_set(run, "render.kdtree.density_falloff=1.0")``. The config's own checks run on the new
+    value.
+
+    Raises:
+        ValueError: naming the assignment, for a missing ``=``, an unknown field (listing the known
+            ones) or a value the field refuses."""
+    path, sep, text = assignment.partition("=")
+    if not sep or not path:
+        raise ValueError(f"config assignment {assignment!r}: expected FIELD.PATH=VALUE")
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        value = text
+
+    def put(node: Any, names: list[str]) -> Any:
+        fields = {f.name for f in dataclasses.fields(node)} if dataclasses.is_dataclass(node) else set()
+        if names[0] not in fields:
+            raise ValueError(f"config assignment {assignment!r}: {type(node).__name__} has no field {names[0]!r} "
+                             f"(known: {', '.join(sorted(fields)) or 'none'})")
+        inner = value if len(names) == 1 else put(getattr(node, names[0]), names[1:])
+        if isinstance(getattr(node, names[0]), tuple) and isinstance(inner, list):
+            inner = tuple(inner)
+        return dataclasses.replace(node, **{names[0]: inner})
+
+    return put(cfg, path.split("."))

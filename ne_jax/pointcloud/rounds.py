@@ -18,7 +18,8 @@ One round (:func:`point_round`) on a trained model:
 3. **Denoise**: Open3D statistical outlier removal (``outlier_neighbors`` = 64 neighbours as the
    released code, ``outlier_std_ratio``), limited to points at least ``outlier_min_ratio`` times the
    median mean-neighbour distance from their neighbours (ours: without it a clean cloud loses its
-   sparsest 2% every round).
+   sparsest 2% every round) and, optionally, to points less confident than
+   ``outlier_keep_confidence``.
 4. **Normals** re-estimated with Open3D for the new cloud (the tree is rebuilt by the caller).
 
 Pruning and denoising never leave fewer than ``min_points`` alive points: a step that would is
@@ -38,6 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ne_jax.checks import checked
+from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.data.rays import Rays
 from ne_jax.fields import require
 from ne_jax.geometry.capacity import LostCounts
@@ -82,6 +84,11 @@ class RoundConfig:
     statistical threshold alone sits at about 1.2x the median, so each round removed the sparsest 2%
     of good points, and holes grew round after round (a 200 px blocks run lost a quarter of its
     sphere). A floater is many times the median away; 0 turns the floor off."""
+    outlier_keep_confidence: float | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
+    """``None``: every statistical outlier beyond the floor goes. A number: outliers whose confidence
+    is at least this stay. A thin part (stool's foot ring: a few dozen points, fewer than the 64
+    neighbours the test compares against) is flagged point by point; when the rendering needs it its
+    confidences say so, which only a density gate (``KDTreeConfig.density_falloff``) lets them do."""
     min_points: int = 64
     """Pruning and denoising are skipped when they would leave fewer alive points."""
     capacity_headroom: float = 1.25
@@ -102,6 +109,8 @@ class RoundConfig:
         need(self.outlier_neighbors >= 2, "outlier_neighbors", "an integer >= 2")
         need(self.outlier_std_ratio > 0, "outlier_std_ratio", "> 0")
         need(self.outlier_min_ratio >= 0, "outlier_min_ratio", ">= 0")
+        need(self.outlier_keep_confidence is None or 0 < self.outlier_keep_confidence <= 1,
+             "outlier_keep_confidence", "None or a value in (0, 1]")
         need(self.min_points >= 1, "min_points", "an integer >= 1")
         need(self.capacity_headroom >= 1, "capacity_headroom", ">= 1")
 
@@ -291,7 +300,8 @@ def denoise_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, di
     """Open3D's statistical outlier removal over the alive points (``cfg.outlier_neighbors``,
     ``cfg.outlier_std_ratio``; :func:`~ne_jax.pointcloud.neighbors.statistical_outliers`), keeping
     every point whose mean neighbour distance is below ``cfg.outlier_min_ratio`` times the median
-    one. Returns ``(points, report)``."""
+    one and, with ``cfg.outlier_keep_confidence``, every point at least that confident. Returns
+    ``(points, report)``."""
     alive = np.flatnonzero(np.asarray(points.alive))
     if alive.size <= cfg.outlier_neighbors:
         return points, {"denoised": 0, "denoised_skipped": True,
@@ -301,6 +311,8 @@ def denoise_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, di
     if cfg.outlier_min_ratio > 0 and outlier.any():
         mean_dist = mean_neighbor_distance(xyz, cfg.outlier_neighbors)
         outlier &= mean_dist >= cfg.outlier_min_ratio * np.median(mean_dist)
+    if cfg.outlier_keep_confidence is not None:
+        outlier &= np.asarray(points.confidence)[alive] < cfg.outlier_keep_confidence
     remove = np.zeros(points.capacity, bool)
     remove[alive[outlier]] = True
     return _guarded_removal(points, remove, cfg.min_points, "denoised")

@@ -90,3 +90,9 @@ def test_a_path_traced_root_names_its_own_results(tmp_path):
     assert set(pt["scenes"]) == {"stool"} and pt["benchmark"] == "tiny_pt" and pt["preset"] == "tiny"
     assert "--root BENCH/tiny_pt" in (out / "train_benchmark_tiny_pt.md").read_text()
     assert set(tb._earlier_scenes("tiny_pt", run, out)) == {"stool"}
+
+
+def test_set_names_an_unknown_field(capsys):
+    with pytest.raises(SystemExit):
+        _load().main(["--set", "render.kdtree.falloff=1.0"])
+    assert "--set: config assignment 'render.kdtree.falloff=1.0'" in capsys.readouterr().err

@@ -60,6 +60,27 @@ def test_floaters_are_removed_and_the_surface_is_not():
     assert report["denoised"] == 15
 
 
+def test_confident_outliers_stay_with_outlier_keep_confidence():
+    """A thin ring of 12 points beside the plane is flagged point by point; with
+    ``outlier_keep_confidence`` the ring's confident points stay and its unconfident ones and the
+    floaters go; without it every one of them goes."""
+    plane = _plane_with_hole()
+    a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    ring = np.stack([0.1 * np.cos(a), 0.1 * np.sin(a), np.full(12, 0.8)], 1)
+    floaters = np.array([[0.5, 0.5, 0.6], [-0.5, 0.2, 0.7], [0.0, -0.6, 0.9]])
+    xyz = np.concatenate([plane, ring, floaters])
+    conf_logit = np.zeros(len(xyz) + 8, np.float32)  # 0.5 everywhere
+    n = len(plane)
+    conf_logit[n:n + 10] = 3.0  # ten ring points rendered with confidence 0.95; two and the floaters not
+    points = _state(xyz).replace(conf_logit=jax.numpy.asarray(conf_logit))
+    kept, report = denoise_points(RoundConfig(outlier_neighbors=16, outlier_keep_confidence=0.9), points)
+    alive = np.asarray(kept.alive)
+    assert alive[:n].all() and alive[n:n + 10].all() and not alive[n + 10:len(xyz)].any()
+    assert report["denoised"] == 5
+    _, plain = denoise_points(RoundConfig(outlier_neighbors=16), points)
+    assert plain["denoised"] == 15
+
+
 def test_identical_points_and_dead_slots():
     """All points at one place (median distance 0): nothing is an outlier; dead slots stay dead."""
     points = _state(np.zeros((100, 3)), capacity=120)
@@ -71,3 +92,5 @@ def test_identical_points_and_dead_slots():
 def test_bad_floor_names_the_field(value):
     with pytest.raises(ValueError, match="outlier_min_ratio"):
         RoundConfig(outlier_min_ratio=value)
+    with pytest.raises(ValueError, match="outlier_keep_confidence"):
+        RoundConfig(outlier_keep_confidence=value)

@@ -104,3 +104,21 @@ def test_a_config_stored_under_a_moved_type_name_reads_back_and_resumes():
     assert cj.config_from_json(stored) == run
     assert cj.config_diff(stored, cj.config_to_json(run)) == []
     assert cj.config_diff(stored, cj.config_to_json(run.replace(seed=1))) == ["seed: checkpoint 0, run 1"]
+
+
+def test_config_set_changes_one_nested_field_and_names_bad_assignments():
+    from ne_jax.train.run import RunConfig
+
+    run = RunConfig.tiny()
+    gated = cj.config_set(run, "render.kdtree.density_falloff=1.0")
+    assert gated.render.kdtree.density_falloff == 1.0 and gated.replace(render=run.render) == run
+    assert cj.config_set(gated, "render.kdtree.density_falloff=null") == run
+    assert cj.config_set(run, "train.confidence_lr=10").train.confidence_lr == 10
+    assert cj.config_set(run, "render.quadrature.samples_per_level=[2, 3, 5]").render.quadrature.samples_per_level \
+        == (2, 3, 5)
+    with pytest.raises(ValueError, match="expected FIELD.PATH=VALUE"):
+        cj.config_set(run, "render.kdtree.density_falloff")
+    with pytest.raises(ValueError, match="KDTreeConfig has no field 'falloff'.*known: .*density_falloff"):
+        cj.config_set(run, "render.kdtree.falloff=1")
+    with pytest.raises(ValueError, match="density_falloff"):  # the config's own check
+        cj.config_set(run, "render.kdtree.density_falloff=-1")
