@@ -115,7 +115,10 @@ def main(argv=None) -> None:
            "benchmarks": out}
     md = "\n".join([
         f"The gated config ({', '.join(f'`{c}`' for c in changes)}) against the `{args.preset}` preset as it "
-        f"is, on {', '.join(roots)}; commit {started}; `{res['command']}`.",
+        f"is, on {', '.join(roots)}; trained at commit "
+        f"{', '.join(sorted({c['commit'] for b in out.values() for c in b.values()}))} (the training code of every "
+        f"run), tabled at {started}; `{res['command']}`. Training seconds are wall time on the 2-core machine, "
+        "the runs one after another; short jobs overlapped some of them, so compare the seconds only roughly.",
         "",
         "| benchmark | config | mean test PSNR | worst scene | mean train s |",
         "|---|---|---:|---:|---:|",
