@@ -1,17 +1,18 @@
 """What the density gate (``KDTreeConfig.density_falloff``) does to a preset, on both benchmarks.
 
 For each benchmark root (``--root NAME=DIR``: the ray-cast and the path-traced variant of a preset)
-the preset is trained twice with :mod:`experiments.train_benchmark` (``baseline``: the preset as it
-is; ``gated``: with the ``--gated FIELD.PATH=VALUE`` changes, by default the gate alone,
-``render.kdtree.density_falloff=1.0``), on the same scenes in one invocation, and the two are
-compared scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
+the preset is trained with :mod:`experiments.train_benchmark` as it is (``baseline``) and in each
+config ``--config NAME=FIELD.PATH=VALUE[,FIELD.PATH=VALUE...]`` (by default ``gate``: the gate
+alone, ``render.kdtree.density_falloff=1.0``), on the same scenes, and the configs are compared
+scene by scene: test PSNR / SSIM, training seconds, the points the rounds grew and pruned,
 the seen-surface Chamfer ratio, and where the final confidences sit (share below the pruning
 threshold 0.1, share above 0.9, median). Without a gate the confidences cannot move the density
 (the KNN weights are normalised), so they stay at their initial 0.5 and pruning never fires; the
 table shows whether the gate changes that and what it costs.
 
     python -m experiments.density_gate_study --preset tiny --root tiny=BENCH/tiny --root tiny_pt=BENCH/tiny_pt \\
-        --runs RUNS --gated render.kdtree.density_falloff=1.0 --gated train.confidence_lr=10
+        --runs RUNS --config gate=render.kdtree.density_falloff=1.0 \\
+        --config gate_lr10=render.kdtree.density_falloff=1.0,train.confidence_lr=10
 
 Runs go to ``RUNS/<name>/<config>/`` (``runs/`` and ``results/``); a stopped study continues where it
 stopped (finished configs are read back, a stopped one is resumed). Writes
@@ -32,7 +33,18 @@ from experiments.common import benchmark_suffix, command, commit, write_results
 from ne_jax.benchmark.scenes import SCENES
 
 RESULTS = Path(__file__).resolve().parent / "results"
-CONFIGS = ("baseline", "gated")
+DEFAULT_CONFIG = "gate=render.kdtree.density_falloff=1.0"
+
+
+def parse_configs(items: list[str]) -> dict[str, list[str]]:
+    """``{"baseline": [], name: [FIELD.PATH=VALUE, ...]}`` from ``NAME=CHANGE[,CHANGE...]`` items."""
+    out = {"baseline": []}
+    for item in items:
+        name, sep, changes = item.partition("=")
+        if not sep or not name.isidentifier() or "=" not in changes or name in out:
+            raise ValueError(f"--config {item!r}: expected a new NAME=FIELD.PATH=VALUE[,FIELD.PATH=VALUE...]")
+        out[name] = changes.split(",")
+    return out
 
 
 def _train(preset: str, root: Path, scenes: list[str], out: Path, extra: list[str]) -> dict:
@@ -75,17 +87,18 @@ def main(argv=None) -> None:
                         help="a benchmark folder of the preset (repeat: ray-cast and path-traced)")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--runs", type=Path, required=True, help="folder of the runs (kept; a study resumes)")
-    parser.add_argument("--gated", action="append", default=None, metavar="FIELD.PATH=VALUE",
-                        help="a change of the gated runs' RunConfig (repeatable; default "
-                             "render.kdtree.density_falloff=1.0)")
+    parser.add_argument("--config", action="append", default=None, metavar="NAME=FIELD.PATH=VALUE[,...]",
+                        help=f"a config to compare with the preset (repeatable; default {DEFAULT_CONFIG})")
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument("--epochs", type=int, default=None, help="override the preset's epochs (smoke tests)")
     parser.add_argument("--steps-per-epoch", type=int, default=None)
     args = parser.parse_args(argv)
     schedule = [] if args.epochs is None else ["--epochs", str(args.epochs)]
     schedule += [] if args.steps_per_epoch is None else ["--steps-per-epoch", str(args.steps_per_epoch)]
-    changes = args.gated or ["render.kdtree.density_falloff=1.0"]
-    gated = [a for change in changes for a in ("--set", change)]
+    try:
+        configs = parse_configs(args.config or [DEFAULT_CONFIG])
+    except ValueError as e:
+        parser.error(str(e))
     roots = {}
     for item in args.root:
         name, sep, path = item.partition("=")
@@ -96,9 +109,9 @@ def main(argv=None) -> None:
     started = commit()
     table, out = [], {}
     for name, root in roots.items():
-        for cfg in CONFIGS:
+        for cfg, changes in configs.items():
             folder = args.runs / name / cfg
-            res = _train(args.preset, root, args.scenes, folder, schedule + (gated if cfg == "gated" else []))
+            res = _train(args.preset, root, args.scenes, folder, schedule + [a for c in changes for a in ("--set", c)])
             confs = {s: confidence_summary(folder / "runs" / s) for s in args.scenes}
             out.setdefault(name, {})[cfg] = {"config_key": res["config_key"], "commit": res["commit"],
                                              "scenes": {s: {**res["scenes"][s], "confidence": confs[s]}
@@ -106,22 +119,25 @@ def main(argv=None) -> None:
             table += [_row(name, cfg, s, res, confs[s]) for s in args.scenes]
     means = []
     for name in roots:
-        for cfg in CONFIGS:
+        base = np.mean([out[name]["baseline"]["scenes"][s]["test_psnr"] for s in args.scenes])
+        for cfg in configs:
             psnr = [out[name][cfg]["scenes"][s]["test_psnr"] for s in args.scenes]
             secs = [out[name][cfg]["scenes"][s]["train_seconds"] for s in args.scenes]
-            means.append(f"| {name} | {cfg} | {np.mean(psnr):.2f} | {min(psnr):.2f} | {np.mean(secs):.0f} |")
-    res = {"what": "density gate study", "preset": args.preset, "gated": changes, "commit": started,
+            means.append(f"| {name} | {cfg} | {np.mean(psnr):.2f} | {np.mean(psnr) - base:+.2f} | {min(psnr):.2f} | "
+                         f"{np.mean(secs):.0f} |")
+    res = {"what": "density gate study", "preset": args.preset, "configs": configs, "commit": started,
            "command": command("experiments.density_gate_study", argv), "machine": {"platform": platform.platform()},
            "benchmarks": out}
     md = "\n".join([
-        f"The gated config ({', '.join(f'`{c}`' for c in changes)}) against the `{args.preset}` preset as it "
-        f"is, on {', '.join(roots)}; trained at commit "
+        "Configs against the `" + args.preset + "` preset as it is (`baseline`): "
+        + "; ".join(f"`{n}`: " + ", ".join(f"`{c}`" for c in ch) for n, ch in configs.items() if ch)
+        + f"; on {', '.join(roots)}; trained at commit "
         f"{', '.join(sorted({c['commit'] for b in out.values() for c in b.values()}))} (the training code of every "
         f"run), tabled at {started}; `{res['command']}`. Training seconds are wall time on the 2-core machine, "
         "the runs one after another; short jobs overlapped some of them, so compare the seconds only roughly.",
         "",
-        "| benchmark | config | mean test PSNR | worst scene | mean train s |",
-        "|---|---|---:|---:|---:|",
+        "| benchmark | config | mean test PSNR | against baseline | worst scene | mean train s |",
+        "|---|---|---:|---:|---:|---:|",
         *means,
         "",
         "| benchmark | scene | config | test PSNR | SSIM | train s | final points | grown | pruned | "
