@@ -22,8 +22,8 @@ sample (key :data:`GATE` of the result, ``[..., 1]``)::
 
     g = sum_k w_k c_k phi(d_k),   phi(d) = 1 - exp(-f spacing / (d + eps)),
 
-``c = sigmoid(conf_logit)``: 1 x ``c`` at a point, ``f spacing / d`` far from every point. The
-renderer multiplies the density by it (:mod:`ne_jax.render.stage`), so a point's confidence scales
+``c = sigmoid(conf_logit)``: the gate is about ``c`` at a point and ``c f spacing / d`` far from the
+cloud. The renderer multiplies the density by it (:mod:`ne_jax.render.stage`), so a confidence scales
 the density it supports (PointNeRF's ``sigma = sum_i gamma_i w_i sigma_i``, where the confidence
 stays outside the normalisation) and the density falls off away from the cloud (the released code's
 ``conf * softclamp(unit_len_nn / dist)`` factor has the same ``1 / d`` tail). Without the gate the
