@@ -123,3 +123,39 @@ def test_falloff_must_be_positive():
     _, _, cfg, *_ = _setup("sphere_700")
     with pytest.raises(ValueError, match="density_falloff"):
         cfg.replace(density_falloff=0.0)
+
+
+@pytest.mark.parametrize("falloff", [None, FALLOFF])
+def test_only_the_gate_gives_a_lone_point_s_confidence_a_rendering_gradient(falloff):
+    """One point, rays through its voxel: without a gate its weight is 1 at any confidence, so the
+    render's gradient in its confidence is exactly 0; with one it is not (and every gradient is
+    finite)."""
+    from ne_jax.geometry.points import PointState
+    from ne_jax.render.renderer import render_rays
+    from ne_jax.render.shading import Effects
+
+    from .clouds import CLOUDS, make_rays
+
+    xyz, alive = CLOUDS["one_point"]
+    cfg = tiny_render(kdtree=tiny_render().kdtree.replace(density_falloff=falloff))
+    cfg = cfg.replace(shading=dataclasses.replace(cfg.shading, effects=Effects(specular=False, point_normals=False)))
+    points = PointState.from_numpy(xyz, feature_dim=cfg.shading.feature_dim)
+    scene = PointScene.build(points, cfg)
+    offsets = np.array([[0.0, 0.0], [0.0005, -0.0003], [-0.0003, 0.0004]], np.float32)
+    origin = np.concatenate([xyz[:, :2] + offsets, np.full((3, 1), -2.0, np.float32)], 1)
+    rays = make_rays(origin, np.tile(np.float32([[0.0, 0.0, 1.0]]), (3, 1)))
+    params = init_color_model(cfg.shading, jax.random.PRNGKey(1))
+
+    def opacity(conf_logit, xyz):
+        sc = scene.replace(points=scene.points.replace(conf_logit=conf_logit, xyz=xyz))
+        out = render_rays(cfg, params, sc, rays, jnp.ones(3))
+        return jnp.sum(out.opacity), out
+
+    (total, out), (g_conf, g_xyz) = jax.value_and_grad(opacity, argnums=(0, 1), has_aux=True)(
+        scene.points.conf_logit, scene.points.xyz)
+    assert np.asarray(out.num_segments).sum() > 0 and float(total) > 0  # rays through the point's voxel
+    assert np.isfinite(np.asarray(g_conf)).all() and np.isfinite(np.asarray(g_xyz)).all()
+    if falloff is None:
+        assert float(jnp.abs(g_conf).max()) == 0.0
+    else:
+        assert float(g_conf[0]) > 0  # more confidence, more density, more opacity
