@@ -42,7 +42,8 @@ def _cmd_make_benchmark(args) -> int:
 
 
 def _run_config(args):
-    """The preset with the command line's changes applied."""
+    """The preset with the command line's changes applied (``--set`` last)."""
+    from ne_jax.config_json import config_set
     from ne_jax.train.run import InitConfig, get_run_preset
 
     run = get_run_preset(args.preset)
@@ -55,7 +56,10 @@ def _run_config(args):
             raise ValueError(f"--ply: given with --init {args.init!r}; use --init ply")
         run = run.replace(init=InitConfig(source=args.init, ply_path=args.ply, carve=run.init.carve,
                                           capacity_headroom=run.init.capacity_headroom))
-    return run.replace(background=args.background, seed=args.seed)
+    run = run.replace(background=args.background, seed=args.seed)
+    for assignment in getattr(args, "set", []):
+        run = config_set(run, assignment)
+    return run
 
 
 def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True) -> dict:
@@ -352,6 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="effects the model computes: scene (what the scene folder's scene.json declares, else the "
                          "preset's; default), auto (decided from the training views), all, or pairs such as "
                          "specular=off,background_model=sphere (specular=on|off, background_model=constant|sphere)")
+    tr.add_argument("--set", action="append", default=[], metavar="FIELD.PATH=VALUE",
+                    help="change one field of the preset's RunConfig (repeatable), e.g. "
+                         "render.kdtree.density_falloff=1.0 (the density gate) or train.confidence_lr=10")
     tr.add_argument("--restart", action="store_true",
                     help="start afresh: remove the checkpoints and metrics of an earlier run in --out")
     tr.add_argument("--no-eval", action="store_true", help="skip evaluating the test views after training")

@@ -79,3 +79,16 @@ def test_the_cli_length_options_fit_the_schedule(argv, epochs, steps):
 
     args = build_parser().parse_args(["train", "scene", "--out", "run", "--preset", "tiny", *argv])
     _spans(_run_config(args), epochs, steps)
+
+
+def test_the_cli_set_option_changes_one_field_and_names_bad_ones():
+    from ne_jax.cli import _run_config
+
+    def run_of(*argv):
+        return _run_config(build_parser().parse_args(["train", "scene", "--out", "run", "--preset", "tiny", *argv]))
+
+    gated = run_of("--set", "render.kdtree.density_falloff=1.0", "--set", "train.confidence_lr=10")
+    assert gated.render.kdtree.density_falloff == 1.0 and gated.train.confidence_lr == 10
+    assert gated.train.total_steps == RunConfig.tiny().total_steps
+    with pytest.raises(ValueError, match="RunConfig has no field 'renderer'"):
+        run_of("--set", "renderer.chunk=4")
