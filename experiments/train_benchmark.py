@@ -117,11 +117,10 @@ def main(argv=None) -> None:
     run = get_run_preset(args.preset)
     if args.epochs is not None or args.steps_per_epoch is not None:
         run = run.with_schedule(args.epochs, args.steps_per_epoch)
-    for assignment in args.set:
-        try:
-            run = config_set(run, assignment)
-        except ValueError as e:
-            parser.error(f"--set: {e}")
+    try:
+        run = config_set(run, *args.set)
+    except ValueError as e:
+        parser.error(f"--set: {e}")
     started_at = commit(short=True)  # the code this process imported
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.root) if args.root else Path(tmp) / "bench"

@@ -56,10 +56,7 @@ def _run_config(args):
             raise ValueError(f"--ply: given with --init {args.init!r}; use --init ply")
         run = run.replace(init=InitConfig(source=args.init, ply_path=args.ply, carve=run.init.carve,
                                           capacity_headroom=run.init.capacity_headroom))
-    run = run.replace(background=args.background, seed=args.seed)
-    for assignment in getattr(args, "set", []):
-        run = config_set(run, assignment)
-    return run
+    return config_set(run.replace(background=args.background, seed=args.seed), *getattr(args, "set", []))
 
 
 def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True) -> dict:

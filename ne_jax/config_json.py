@@ -215,15 +215,21 @@ def _show(v: Any) -> str:
     return repr(v)
 
 
-def config_set(cfg: Any, assignment: str) -> Any:
-    """``cfg`` with one nested field set from ``"dotted.path=VALUE"`` (``VALUE`` read as JSON:
-    ``1.0``, ``null``, ``true``, ``"text"``; a bare word is a string), e.g.
-    ``config_set(run, "render.kdtree.density_falloff=1.0")``. The config's own checks run on the new
-    value.
+def config_set(cfg: Any, *assignments: str) -> Any:
+    """``cfg`` with nested fields set from ``"dotted.path=VALUE"`` assignments, in order (``VALUE``
+    read as JSON: ``1.0``, ``null``, ``true``, ``"text"``; a bare word is a string), e.g.
+    ``config_set(run, "render.kdtree.density_falloff=1.0", "train.confidence_lr=10")``. The config's
+    own checks run on every new value.
 
     Raises:
         ValueError: naming the assignment, for a missing ``=``, an unknown field (listing the known
             ones) or a value the field refuses."""
+    for assignment in assignments:
+        cfg = _set_one(cfg, assignment)
+    return cfg
+
+
+def _set_one(cfg: Any, assignment: str) -> Any:
     path, sep, text = assignment.partition("=")
     if not sep or not path:
         raise ValueError(f"config assignment {assignment!r}: expected FIELD.PATH=VALUE")

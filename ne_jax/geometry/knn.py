@@ -84,6 +84,11 @@ def falloff(dist: jax.Array, scale, eps) -> jax.Array:
     return -jnp.expm1(-scale / (dist + eps))
 
 
+def _eps(cfg: KDTreeConfig, tree: KDTree, dtype):
+    """The distance offset of the weights, ``knn_eps_factor * spacing``."""
+    return (cfg.knn_eps_factor * tree.spacing).astype(dtype)
+
+
 def _gate_scale(cfg: KDTreeConfig, tree: KDTree, dtype):
     """``density_falloff * spacing``, or ``None`` without a gate."""
     return None if cfg.density_falloff is None else (cfg.density_falloff * tree.spacing).astype(dtype)
@@ -217,7 +222,7 @@ def _search(state, tree, points, segment_node, cfg: KDTreeConfig, exact: bool):
         raise ValueError(f"points: expected shape [..., 3], found shape {points.shape}")
     if tree is None:
         raise ValueError("tree: expected a KDTree (its spacing sets the distance epsilon), found None")
-    eps = (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)
+    eps = _eps(cfg, tree, points.dtype)
     k = cfg.knn_k
     if exact:
         flat = points.reshape(-1, 3)
@@ -330,7 +335,7 @@ def knn_interpolate(
     out = _interpolate_shared(*dense, values) if dense is not None else interpolate(nb, values)
     scale = _gate_scale(cfg, tree, points.dtype)
     if scale is not None:
-        out = _with_gate(out, neighbor_gate(state, nb, scale, (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)))
+        out = _with_gate(out, neighbor_gate(state, nb, scale, _eps(cfg, tree, points.dtype)))
     return out, nb
 
 
@@ -370,7 +375,7 @@ def knn_integrate(
             f"cfg.num_candidates: expected the tree's candidate width {tree.candidates.shape[-1]}, "
             f"found {cfg.num_candidates}"
         )
-    eps = (cfg.knn_eps_factor * tree.spacing).astype(points.dtype)
+    eps = _eps(cfg, tree, points.dtype)
     scale = _gate_scale(cfg, tree, points.dtype)
     per_candidate, ci, gate = _per_candidate_weights(state, tree, points, segment_node.astype(jnp.int32), weight,
                                                      cfg.knn_k, eps, scale)

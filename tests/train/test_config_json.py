@@ -114,6 +114,8 @@ def test_config_set_changes_one_nested_field_and_names_bad_assignments():
     assert gated.render.kdtree.density_falloff == 1.0 and gated.replace(render=run.render) == run
     assert cj.config_set(gated, "render.kdtree.density_falloff=null") == run
     assert cj.config_set(run, "train.confidence_lr=10").train.confidence_lr == 10
+    both = cj.config_set(run, "render.kdtree.density_falloff=1.0", "train.confidence_lr=10")
+    assert both == cj.config_set(gated, "train.confidence_lr=10") and cj.config_set(run) == run
     assert cj.config_set(run, "render.quadrature.samples_per_level=[2, 3, 5]").render.quadrature.samples_per_level \
         == (2, 3, 5)
     with pytest.raises(ValueError, match="expected FIELD.PATH=VALUE"):
