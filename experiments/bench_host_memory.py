@@ -1,0 +1,176 @@
+"""Host memory kept mapped (``ne_jax._host_memory``) against glibc's defaults, in one run.
+
+    python -m experiments.bench_host_memory [--rounds 2] [--steps 10] [--quick] [--train SCENE_DIR]
+
+Each round runs two child processes, one with ``NE_JAX_HOST_MEMORY=keep`` (what ``import ne_jax``
+does) and one with ``NE_JAX_HOST_MEMORY=system``, in alternating order. Each child times
+``--steps`` training steps of the ``default`` preset (the state fed forward, as training does) and
+as many render chunks, on the inputs of ``experiments/profile_hot_path.py`` (100,000 points on the
+glossy surface, 2,048 training rays, 4,096-ray render chunks; ``--quick``: 20,000 points), after
+two compiling calls, and reads the page faults and the kernel and user CPU time of those calls
+from ``getrusage``. ``--train SCENE_DIR`` also trains that scene end to end with ``ne-jax train
+--preset tiny`` in each setting (wall time and page faults of the whole process). The best of the
+rounds is tabled; the loss must be the same in both settings.
+
+Writes ``experiments/results/bench_host_memory.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from experiments.common import command, commit, write_results
+
+SETTINGS = ("keep", "system")
+
+
+def measure(steps: int, quick: bool) -> dict:
+    """Per training step and per render chunk: ms, page faults, kernel and user CPU seconds."""
+    import jax
+    import jax.numpy as jnp
+
+    from experiments.profile_hot_path import TRAIN_RAYS, build_inputs
+    from ne_jax import _host_memory
+    from ne_jax.render.renderer import render_rays
+    from ne_jax.train.sampler import Batch
+    from ne_jax.train.state import init_train_state
+    from ne_jax.train.step import make_train_step
+
+    run, scene, rrays, trays, _, _ = build_inputs(quick)
+    cfg, train_scene = run.render, scene.fitted(run.render, trays)
+    bg = jnp.ones(3)
+    state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
+    step = make_train_step(run.train, cfg)
+    batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
+                  background=bg)
+    render = jax.jit(lambda p, sc, r: render_rays(run.render, p, sc, r, bg))
+
+    def usage():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return time.perf_counter(), r.ru_minflt, r.ru_stime, r.ru_utime
+
+    def per_call(a, b):
+        return {"ms": 1e3 * (b[0] - a[0]) / steps, "faults": (b[1] - a[1]) / steps,
+                "sys_s": (b[2] - a[2]) / steps, "user_s": (b[3] - a[3]) / steps}
+
+    for _ in range(2):  # compile and warm up
+        state, m = step(state, train_scene, batch)
+        render(state.params, scene, rrays).rgb.block_until_ready()
+    first_loss = float(m["loss/total"])
+    t0 = usage()
+    for _ in range(steps):
+        state, m = step(state, train_scene, batch)
+    m["loss/total"].block_until_ready()
+    t1 = usage()
+    for _ in range(steps):
+        out = render(state.params, scene, rrays)
+    out.rgb.block_until_ready()
+    t2 = usage()
+    return {"host_memory_applied": _host_memory._applied, "devices": jax.device_count(),
+            "step": per_call(t0, t1), "render": per_call(t1, t2), "loss_after_warmup": first_loss,
+            "loss_last": float(m["loss/total"])}
+
+
+def train_once(scene_dir: str, setting: str) -> dict:
+    """``ne-jax train --preset tiny`` on ``scene_dir`` in a fresh run directory: wall seconds and the
+    child's page faults and CPU seconds."""
+    with tempfile.TemporaryDirectory() as tmp:
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "ne_jax.cli", "train", scene_dir, "--preset", "tiny", "--out",
+                        str(Path(tmp) / "run"), "--no-eval", "--quiet"],
+                       env={**os.environ, "NE_JAX_HOST_MEMORY": setting}, check=True)
+        wall = time.perf_counter() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        metrics = json.loads((Path(tmp) / "run" / "metrics.json").read_text())
+    return {"wall_s": wall, "faults": after.ru_minflt - before.ru_minflt, "sys_s": after.ru_stime - before.ru_stime,
+            "user_s": after.ru_utime - before.ru_utime, "final_train_psnr": _last_psnr(metrics)}
+
+
+def _last_psnr(metrics: dict):
+    epochs = metrics.get("epochs") or []
+    return epochs[-1].get("psnr") if epochs and isinstance(epochs[-1], dict) else None
+
+
+def _child(setting: str, steps: int, quick: bool) -> dict:
+    cmd = [sys.executable, "-m", "experiments.bench_host_memory", "--child", "--steps", str(steps)]
+    res = subprocess.run(cmd + (["--quick"] if quick else []), capture_output=True, text=True,
+                         env={**os.environ, "NE_JAX_HOST_MEMORY": setting})
+    if res.returncode != 0:
+        raise RuntimeError(res.stderr[-4000:])
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def _best(rows: list[dict], kind: str) -> dict:
+    return min((r[kind] for r in rows), key=lambda x: x["ms"])
+
+
+def to_markdown(res: dict) -> str:
+    lines = [f"Host memory kept mapped (`NE_JAX_HOST_MEMORY=keep`, the default) against glibc's defaults "
+             f"(`system`); commit {res['commit']}; `{res['command']}`; {res['devices']} host devices, "
+             f"{res['cpus']} CPUs; best of {res['rounds']} alternating rounds, {res['steps']} calls each; "
+             f"load average {res['load_average'][0]:.1f} at the end.", "",
+             "| call | setting | ms per call | page faults per call | kernel CPU s per call | user CPU s per call |",
+             "|---|---|---:|---:|---:|---:|"]
+    for kind, name in (("step", "`default` training step (2,048 rays)"), ("render", "render chunk (4,096 rays)")):
+        for s in SETTINGS:
+            b = res["best"][s][kind]
+            lines.append(f"| {name} | {s} | {b['ms']:.1f} | {b['faults']:.0f} | {b['sys_s']:.3f} | {b['user_s']:.3f} |")
+    r = res["ratio"]
+    lines += ["", f"`system` / `keep` time per call: training step {r['step']:.2f}x, render chunk {r['render']:.2f}x. "
+              f"Loss after the timed steps: {res['best_loss']['keep']:.6f} (keep), {res['best_loss']['system']:.6f} "
+              "(system)."]
+    if res.get("train"):
+        lines += ["", "| `ne-jax train --preset tiny` | wall s | page faults | kernel CPU s | user CPU s |",
+                  "|---|---:|---:|---:|---:|"]
+        for s in SETTINGS:
+            t = min(res["train"][s], key=lambda x: x["wall_s"])
+            lines.append(f"| {s} | {t['wall_s']:.1f} | {t['faults']:,} | {t['sys_s']:.1f} | {t['user_s']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--quick", action="store_true", help="20,000 points instead of 100,000")
+    ap.add_argument("--train", default=None, metavar="SCENE_DIR", help="also train this scene at tiny in each setting")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--out-dir", type=Path, default=Path(__file__).resolve().parent / "results")
+    args = ap.parse_args(argv)
+    if args.child:
+        print(json.dumps(measure(args.steps, args.quick)))
+        return
+    rows = {s: [] for s in SETTINGS}
+    train = {s: [] for s in SETTINGS} if args.train else None
+    for i in range(args.rounds):
+        for s in SETTINGS if i % 2 == 0 else SETTINGS[::-1]:
+            rows[s].append(_child(s, args.steps, args.quick))
+            print(s, json.dumps(rows[s][-1]), flush=True)
+            if train is not None:
+                train[s].append(train_once(args.train, s))
+                print(s, "train", json.dumps(train[s][-1]), flush=True)
+    if not rows["keep"][0]["host_memory_applied"]:
+        print("warning: the settings were not applied (not glibc?); both columns measure the same thing")
+    best = {s: {k: _best(rows[s], k) for k in ("step", "render")} for s in SETTINGS}
+    res = {"what": "page faults and time per call with XLA:CPU scratch memory kept mapped or not",
+           "commit": commit(), "command": command("experiments.bench_host_memory", argv if argv is not None
+                                                  else sys.argv[1:]),
+           "rounds": args.rounds, "steps": args.steps, "quick": args.quick, "cpus": os.cpu_count(),
+           "devices": rows["keep"][0]["devices"], "load_average": list(os.getloadavg()),
+           "best": best, "rounds_raw": rows, "train": train,
+           "best_loss": {s: rows[s][0]["loss_last"] for s in SETTINGS},
+           "ratio": {k: best["system"][k]["ms"] / best["keep"][k]["ms"] for k in ("step", "render")}}
+    write_results(args.out_dir, "bench_host_memory" + ("_quick" if args.quick else ""), res, to_markdown(res))
+
+
+if __name__ == "__main__":
+    main()
