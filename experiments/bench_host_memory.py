@@ -1,16 +1,17 @@
-"""Host memory kept mapped (``ne_jax._host_memory``) against glibc's defaults, in one run.
+"""Huge pages for XLA:CPU's scratch memory (``ne_jax._host_memory``) against glibc's defaults, in one run.
 
     python -m experiments.bench_host_memory [--rounds 2] [--steps 10] [--quick] [--train SCENE_DIR]
 
-Each round runs two child processes, one with ``NE_JAX_HOST_MEMORY=keep`` (what ``import ne_jax``
-does) and one with ``NE_JAX_HOST_MEMORY=system``, in alternating order. Each child times
-``--steps`` training steps of the ``default`` preset (the state fed forward, as training does) and
-as many render chunks, on the inputs of ``experiments/profile_hot_path.py`` (100,000 points on the
-glossy surface, 2,048 training rays, 4,096-ray render chunks; ``--quick``: 20,000 points), after
-two compiling calls, and reads the page faults and the kernel and user CPU time of those calls
-from ``getrusage``. ``--train SCENE_DIR`` also trains that scene end to end with ``ne-jax train
---preset tiny`` in each setting (wall time and page faults of the whole process). The best of the
-rounds is tabled; the loss must be the same in both settings.
+Each round runs two child processes, one started with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``
+(``huge_pages``: what ``ne-jax`` and ``run.sh`` do) and one without (``system``), in alternating
+order. Each child compiles a ``default`` training step (timed: the first call), then times
+``--steps`` training steps (the state fed forward, as training does) and as many render chunks, on
+the inputs of ``experiments/profile_hot_path.py`` (100,000 points on the glossy surface, 2,048
+training rays, 4,096-ray render chunks; ``--quick``: 20,000 points), and reads the page faults and
+the kernel and user CPU time of those calls from ``getrusage``. ``--train SCENE_DIR`` also trains
+that scene end to end with ``ne-jax train --preset tiny`` in each setting (wall time, page faults
+and CPU time of the whole process). The best of the rounds is tabled; the loss must be the same in
+both settings.
 
 Writes ``experiments/results/bench_host_memory.{json,md}``.
 """
@@ -28,8 +29,10 @@ import time
 from pathlib import Path
 
 from experiments.common import command, commit, write_results
+from ne_jax._host_memory import TUNABLE
 
-SETTINGS = ("keep", "system")
+SETTINGS = ("huge_pages", "system")
+TUNABLES = {"huge_pages": TUNABLE, "system": ""}
 
 
 def measure(steps: int, quick: bool) -> dict:
@@ -38,7 +41,6 @@ def measure(steps: int, quick: bool) -> dict:
     import jax.numpy as jnp
 
     from experiments.profile_hot_path import TRAIN_RAYS, build_inputs
-    from ne_jax import _host_memory
     from ne_jax.render.renderer import render_rays
     from ne_jax.train.sampler import Batch
     from ne_jax.train.state import init_train_state
@@ -61,7 +63,11 @@ def measure(steps: int, quick: bool) -> dict:
         return {"ms": 1e3 * (b[0] - a[0]) / steps, "faults": (b[1] - a[1]) / steps,
                 "sys_s": (b[2] - a[2]) / steps, "user_s": (b[3] - a[3]) / steps}
 
-    for _ in range(2):  # compile and warm up
+    c0 = usage()
+    state, m = step(state, train_scene, batch)
+    m["loss/total"].block_until_ready()
+    c1 = usage()
+    for _ in range(2):  # compile the render, warm up
         state, m = step(state, train_scene, batch)
         render(state.params, scene, rrays).rgb.block_until_ready()
     first_loss = float(m["loss/total"])
@@ -74,7 +80,8 @@ def measure(steps: int, quick: bool) -> dict:
         out = render(state.params, scene, rrays)
     out.rgb.block_until_ready()
     t2 = usage()
-    return {"host_memory_applied": _host_memory._applied, "devices": jax.device_count(),
+    return {"glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""), "devices": jax.device_count(),
+            "compile_step_s": c1[0] - c0[0], "compile_step_user_s": c1[3] - c0[3],
             "step": per_call(t0, t1), "render": per_call(t1, t2), "loss_after_warmup": first_loss,
             "loss_last": float(m["loss/total"])}
 
@@ -87,7 +94,7 @@ def train_once(scene_dir: str, setting: str) -> dict:
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "ne_jax.cli", "train", scene_dir, "--preset", "tiny", "--out",
                         str(Path(tmp) / "run"), "--no-eval", "--quiet"],
-                       env={**os.environ, "NE_JAX_HOST_MEMORY": setting}, check=True)
+                       env=_env(setting), check=True)
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         metrics = json.loads((Path(tmp) / "run" / "metrics.json").read_text())
@@ -100,10 +107,21 @@ def _last_psnr(metrics: dict):
     return epochs[-1].get("psnr") if epochs and isinstance(epochs[-1], dict) else None
 
 
+def _env(setting: str) -> dict:
+    """This process's environment with ``GLIBC_TUNABLES`` as ``setting`` wants it (``ne-jax`` would
+    add the tunable itself: ``NE_JAX_HOST_MEMORY=system`` stops it in the ``system`` setting)."""
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    if TUNABLES[setting]:
+        env["GLIBC_TUNABLES"] = TUNABLES[setting]
+    else:
+        env["NE_JAX_HOST_MEMORY"] = "system"
+    return env
+
+
 def _child(setting: str, steps: int, quick: bool) -> dict:
     cmd = [sys.executable, "-m", "experiments.bench_host_memory", "--child", "--steps", str(steps)]
     res = subprocess.run(cmd + (["--quick"] if quick else []), capture_output=True, text=True,
-                         env={**os.environ, "NE_JAX_HOST_MEMORY": setting})
+                         env=_env(setting))
     if res.returncode != 0:
         raise RuntimeError(res.stderr[-4000:])
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -114,8 +132,9 @@ def _best(rows: list[dict], kind: str) -> dict:
 
 
 def to_markdown(res: dict) -> str:
-    lines = [f"Host memory kept mapped (`NE_JAX_HOST_MEMORY=keep`, the default) against glibc's defaults "
-             f"(`system`); commit {res['commit']}; `{res['command']}`; {res['devices']} host devices, "
+    lines = [f"Huge pages for XLA:CPU's scratch memory (`huge_pages`: `GLIBC_TUNABLES={TUNABLE}`, what `ne-jax` "
+             f"and `run.sh` set) against glibc's defaults (`system`); commit {res['commit']}; `{res['command']}`; "
+             f"{res['devices']} host devices, "
              f"{res['cpus']} CPUs; best of {res['rounds']} alternating rounds, {res['steps']} calls each; "
              f"load average {res['load_average'][0]:.1f} at the end.", "",
              "| call | setting | ms per call | page faults per call | kernel CPU s per call | user CPU s per call |",
@@ -125,9 +144,11 @@ def to_markdown(res: dict) -> str:
             b = res["best"][s][kind]
             lines.append(f"| {name} | {s} | {b['ms']:.1f} | {b['faults']:.0f} | {b['sys_s']:.3f} | {b['user_s']:.3f} |")
     r = res["ratio"]
-    lines += ["", f"`system` / `keep` time per call: training step {r['step']:.2f}x, render chunk {r['render']:.2f}x. "
-              f"Loss after the timed steps: {res['best_loss']['keep']:.6f} (keep), {res['best_loss']['system']:.6f} "
-              "(system)."]
+    comp = {s: min(x["compile_step_s"] for x in res["rounds_raw"][s]) for s in SETTINGS}
+    lines += ["", f"`system` / `huge_pages` time per call: training step {r['step']:.2f}x, render chunk "
+              f"{r['render']:.2f}x. Compiling the training step: {comp['huge_pages']:.1f} s (huge_pages), "
+              f"{comp['system']:.1f} s (system). Loss after the timed steps: {res['best_loss']['huge_pages']:.6f} "
+              f"(huge_pages), {res['best_loss']['system']:.6f} (system)."]
     if res.get("train"):
         lines += ["", "| `ne-jax train --preset tiny` | wall s | page faults | kernel CPU s | user CPU s |",
                   "|---|---:|---:|---:|---:|"]
@@ -158,17 +179,15 @@ def main(argv=None) -> None:
             if train is not None:
                 train[s].append(train_once(args.train, s))
                 print(s, "train", json.dumps(train[s][-1]), flush=True)
-    if not rows["keep"][0]["host_memory_applied"]:
-        print("warning: the settings were not applied (not glibc?); both columns measure the same thing")
     best = {s: {k: _best(rows[s], k) for k in ("step", "render")} for s in SETTINGS}
-    res = {"what": "page faults and time per call with XLA:CPU scratch memory kept mapped or not",
+    res = {"what": "page faults and time per call with and without huge pages for XLA:CPU's scratch memory",
            "commit": commit(), "command": command("experiments.bench_host_memory", argv if argv is not None
                                                   else sys.argv[1:]),
            "rounds": args.rounds, "steps": args.steps, "quick": args.quick, "cpus": os.cpu_count(),
-           "devices": rows["keep"][0]["devices"], "load_average": list(os.getloadavg()),
+           "devices": rows["huge_pages"][0]["devices"], "load_average": list(os.getloadavg()),
            "best": best, "rounds_raw": rows, "train": train,
            "best_loss": {s: rows[s][0]["loss_last"] for s in SETTINGS},
-           "ratio": {k: best["system"][k]["ms"] / best["keep"][k]["ms"] for k in ("step", "render")}}
+           "ratio": {k: best["system"][k]["ms"] / best["huge_pages"][k]["ms"] for k in ("step", "render")}}
     write_results(args.out_dir, "bench_host_memory" + ("_quick" if args.quick else ""), res, to_markdown(res))
 
 

@@ -7,15 +7,11 @@ tree, traversal, KNN) -> ``render`` -> ``train`` -> ``edit``.
 
 Importing ``ne_jax`` gives JAX one host device per usable CPU core (on the CPU platform only, and
 only where no device count was given to JAX itself), so the ray mesh of :mod:`ne_jax.devices` uses
-every core; ``NE_JAX_HOST_DEVICES=1`` opts out (:mod:`ne_jax._platform`). It also keeps XLA:CPU's
-scratch memory mapped between calls (glibc's ``mallopt``), which saves a page fault per 4 KiB of it
-on every call; ``NE_JAX_HOST_MEMORY=system`` opts out (:mod:`ne_jax._host_memory`).
+every core; ``NE_JAX_HOST_DEVICES=1`` opts out (:mod:`ne_jax._platform`).
 """
 
-from ne_jax._host_memory import configure_host_memory as _configure_host_memory
 from ne_jax._platform import configure_host_devices as _configure_host_devices
 
-_configure_host_memory()
 _configure_host_devices()
 
 __version__ = "0.1.0"

@@ -1,10 +1,10 @@
-"""XLA:CPU's scratch memory stays mapped between calls (``import ne_jax`` sets glibc's ``mallopt``),
-``NE_JAX_HOST_MEMORY=system`` opts out, and a bad value names the variable.
+"""Huge pages for XLA:CPU's scratch memory: the tunable's effect, when ``ne-jax`` starts itself again
+with it, the ``NE_JAX_HOST_MEMORY=system`` opt-out, and a bad value naming the variable.
 
-glibc's settings hold for the whole process, so the end-to-end check runs fresh Python processes
-and count the page faults of a worker thread (as XLA:CPU runs a device's program) that allocates,
-touches and frees a 100 MB block again and again: glibc maps such a block afresh every time under
-its defaults (a thread's own arena cannot hold it), and reuses it with the memory kept.
+glibc reads its tunables when a process starts, so the effect is checked in fresh Python processes:
+a worker thread (as XLA:CPU runs a device's program) allocates, touches and frees a 100 MB block
+again and again. glibc maps such a block afresh every time (a thread's own arena cannot hold it),
+and the page faults per block drop with huge pages from one per 4 KiB to one per 2 MiB.
 """
 
 from __future__ import annotations
@@ -17,50 +17,97 @@ import sys
 
 import pytest
 
-from ne_jax._host_memory import ENV, requested_policy
+from ne_jax import _host_memory
+from ne_jax._host_memory import ENV, TUNABLE, reexec_with_huge_pages, requested_policy, tunables_env
 
 _PROBE = """
-import json, resource, threading
-import numpy as np
-import ne_jax
-from ne_jax import _host_memory
+import ctypes, json, resource, threading
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+size = 100 << 20
 out = {}
-def work():  # like an XLA worker thread: a 100 MB scratch block, allocated, touched and freed per call
-    for _ in range(2):
-        np.ones(12_500_000)
+def block():
+    p = libc.malloc(size)
+    ctypes.memset(p, 1, size)
+    libc.free(p)
+def work():
+    block(); block()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for _ in range(5):
-        np.ones(12_500_000)
-    out["faults_per_call"] = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 5
+        block()
+    out["faults_per_block"] = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 5
 t = threading.Thread(target=work)
 t.start()
 t.join()
-print(json.dumps({"applied": _host_memory._applied, **out}))
+print(json.dumps(out))
 """
 
+_GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 
-def _probe(setting: str) -> dict:
-    env = {**os.environ, ENV: setting}
+
+def _thp_available() -> bool:
+    try:
+        with open("/sys/kernel/mm/transparent_hugepage/enabled") as f:
+            return "[never]" not in f.read()
+    except OSError:
+        return False
+
+
+def _probe(tunables: str | None) -> float:
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    if tunables:
+        env["GLIBC_TUNABLES"] = tunables
     out = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, check=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return json.loads(out.stdout.strip().splitlines()[-1])["faults_per_block"]
 
 
-@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
-def test_repeated_calls_reuse_their_memory():
-    """Page faults per 100 MB block: hundreds under glibc's defaults (a fresh mapping each time; numpy
-    asks for huge pages, so not one per 4 KiB), none with the memory kept."""
-    kept, system = _probe("keep"), _probe("system")
-    assert kept["applied"] is True and system["applied"] is False
-    assert system["faults_per_call"] > 40  # the probe exercises what it should (>= 50 huge pages)
-    assert kept["faults_per_call"] < 0.05 * system["faults_per_call"]
+@pytest.mark.skipif(not (_GLIBC and _thp_available()), reason="glibc with transparent huge pages")
+def test_huge_pages_cut_the_faults_of_a_threads_large_blocks():
+    system, huge = _probe(None), _probe(TUNABLE)
+    assert system > 20_000  # a fresh mapping per block, a fault per 4 KiB page (25,600 pages)
+    assert huge < 0.05 * system
 
 
-@pytest.mark.parametrize("env, expected", [({}, "keep"), ({ENV: " Keep "}, "keep"), ({ENV: "system"}, "system"),
-                                           ({ENV: ""}, "keep")])
+def test_the_environment_to_start_again_with(monkeypatch):
+    monkeypatch.setattr(_host_memory, "_is_glibc", lambda: True)
+    assert tunables_env({})["GLIBC_TUNABLES"] == TUNABLE
+    assert tunables_env({"GLIBC_TUNABLES": "glibc.malloc.arena_max=2", "X": "1"}) == {
+        "GLIBC_TUNABLES": f"glibc.malloc.arena_max=2:{TUNABLE}", "X": "1"}
+    assert tunables_env({"GLIBC_TUNABLES": "glibc.malloc.hugetlb=0"}) is None  # the user's own choice
+    assert tunables_env({"GLIBC_TUNABLES": TUNABLE}) is None  # already started with it: no loop
+    assert tunables_env({ENV: "system"}) is None
+    monkeypatch.setattr(_host_memory, "_is_glibc", lambda: False)
+    assert tunables_env({}) is None
+
+
+def test_reexec_replaces_the_process_only_when_it_adds_something(monkeypatch):
+    calls = []
+    monkeypatch.setattr(os, "execve", lambda exe, argv, env: calls.append((exe, argv, env)))
+    monkeypatch.setattr(_host_memory, "_is_glibc", lambda: True)
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
+    monkeypatch.delenv(ENV, raising=False)
+    reexec_with_huge_pages("ne_jax.cli", ["train", "scene", "--out", "run"])
+    ((exe, argv, env),) = calls
+    assert exe == sys.executable and argv == [sys.executable, "-m", "ne_jax.cli", "train", "scene", "--out", "run"]
+    assert env["GLIBC_TUNABLES"] == TUNABLE
+    monkeypatch.setenv(ENV, "system")
+    reexec_with_huge_pages("ne_jax.cli", [])
+    assert len(calls) == 1
+
+
+@pytest.mark.parametrize("env, expected", [({}, "huge_pages"), ({ENV: " Huge_Pages "}, "huge_pages"),
+                                           ({ENV: "system"}, "system"), ({ENV: ""}, "huge_pages")])
 def test_the_policy_from_the_environment(env, expected):
     assert requested_policy(env) == expected
 
 
 def test_an_unknown_policy_names_the_variable():
-    with pytest.raises(ValueError, match=rf"{ENV}: expected 'keep' \(the default\) or 'system', found 'always'"):
-        requested_policy({ENV: "always"})
+    with pytest.raises(ValueError, match=rf"{ENV}: expected 'huge_pages' \(the default\) or 'system', found 'keep'"):
+        requested_policy({ENV: "keep"})
+
+
+def test_the_command_line_names_a_bad_policy():
+    env = {**os.environ, ENV: "keep"}
+    out = subprocess.run([sys.executable, "-m", "ne_jax.cli", "--help"], env=env, capture_output=True, text=True)
+    assert out.returncode == 2 and f"ne-jax: error: {ENV}: expected 'huge_pages'" in out.stderr
