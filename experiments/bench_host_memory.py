@@ -147,8 +147,8 @@ def to_markdown(res: dict) -> str:
     comp = {s: min(x["compile_step_s"] for x in res["rounds_raw"][s]) for s in SETTINGS}
     lines += ["", f"`system` / `huge_pages` time per call: training step {r['step']:.2f}x, render chunk "
               f"{r['render']:.2f}x. Compiling the training step: {comp['huge_pages']:.1f} s (huge_pages), "
-              f"{comp['system']:.1f} s (system). Loss after the timed steps: {res['best_loss']['huge_pages']:.6f} "
-              f"(huge_pages), {res['best_loss']['system']:.6f} (system)."]
+              f"{comp['system']:.1f} s (system). Loss after the timed steps: {res['loss_last']['huge_pages']:.6f} "
+              f"(huge_pages), {res['loss_last']['system']:.6f} (system)."]
     if res.get("train"):
         lines += ["", "| `ne-jax train --preset tiny` | wall s | page faults | kernel CPU s | user CPU s |",
                   "|---|---:|---:|---:|---:|"]
@@ -170,6 +170,7 @@ def main(argv=None) -> None:
     if args.child:
         print(json.dumps(measure(args.steps, args.quick)))
         return
+    code = commit()  # before the runs: HEAD may move while they run
     rows = {s: [] for s in SETTINGS}
     train = {s: [] for s in SETTINGS} if args.train else None
     for i in range(args.rounds):
@@ -181,12 +182,11 @@ def main(argv=None) -> None:
                 print(s, "train", json.dumps(train[s][-1]), flush=True)
     best = {s: {k: _best(rows[s], k) for k in ("step", "render")} for s in SETTINGS}
     res = {"what": "page faults and time per call with and without huge pages for XLA:CPU's scratch memory",
-           "commit": commit(), "command": command("experiments.bench_host_memory", argv if argv is not None
-                                                  else sys.argv[1:]),
+           "commit": code, "command": command("experiments.bench_host_memory", argv),
            "rounds": args.rounds, "steps": args.steps, "quick": args.quick, "cpus": os.cpu_count(),
            "devices": rows["huge_pages"][0]["devices"], "load_average": list(os.getloadavg()),
            "best": best, "rounds_raw": rows, "train": train,
-           "best_loss": {s: rows[s][0]["loss_last"] for s in SETTINGS},
+           "loss_last": {s: rows[s][0]["loss_last"] for s in SETTINGS},
            "ratio": {k: best["system"][k]["ms"] / best["huge_pages"][k]["ms"] for k in ("step", "render")}}
     write_results(args.out_dir, "bench_host_memory" + ("_quick" if args.quick else ""), res, to_markdown(res))
 
