@@ -22,7 +22,9 @@ matrices measured in the same run.
 
 Old vs new: the whole render and the whole training step are also timed, in subprocesses, with the
 code at ``--reference-path`` (a worktree of the reference commit) and with this checkout,
-alternating, so the ratio is measured in one run on the same (shared) machine. That path runs
+alternating, so the ratio is measured in one run on the same (shared) machine; each code starts as
+it starts itself (this checkout, like ``ne-jax``, with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``:
+:mod:`ne_jax._host_memory`; the reference with glibc's defaults). That path runs
 this file against the reference's ``ne_jax``, so :func:`build_inputs` and :func:`measure_whole` also
 work with a reference from before the buffer sizes moved into ``Capacities`` (carried by the scene).
 Writes ``experiments/results/profile_hot_path.{json,md}``.
@@ -299,9 +301,15 @@ def profile_stages(repeats: int, quick: bool) -> dict:
 
 
 def _child(path: str | None, repeats: int, quick: bool) -> dict:
-    env = dict(os.environ)
+    """The whole render and step in a fresh process, each code started as it starts itself: this
+    checkout with huge pages for XLA's scratch memory (as ``ne-jax`` does), the reference without."""
+    from ne_jax._host_memory import tunables_env
+
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
     if path:
         env["PYTHONPATH"] = path + os.pathsep + env.get("PYTHONPATH", "")
+    else:
+        env = tunables_env(env) or env
     cmd = [sys.executable, str(Path(__file__).resolve()), "--whole-only", "--repeats", str(repeats)]
     if quick:
         cmd.append("--quick")
@@ -357,6 +365,10 @@ def main(argv=None) -> None:
     if args.whole_only:
         print(json.dumps(measure_whole(args.repeats, args.quick)))
         return
+    if argv is None:  # the stage profile below: with huge pages, as ne-jax runs
+        from ne_jax._host_memory import reexec_with_huge_pages
+
+        reexec_with_huge_pages("experiments.profile_hot_path", sys.argv[1:])
     import jax
 
     whole = {"reference": [], "new": []}
