@@ -1,10 +1,10 @@
-"""Huge pages for XLA:CPU's scratch memory: 40x fewer page faults per call.
+"""Huge pages for XLA:CPU's scratch memory: 25x fewer page faults per training step.
 
 Each call of a compiled program on a CPU device allocates one large block of scratch memory (about
 150 MB per device for a ``default`` training step, 130 MB for a 4,096-ray render chunk) and frees
 it at the end. XLA's worker threads allocate from glibc's per-thread arenas, which cannot hold a
 block that size, so glibc maps it afresh on every call and unmaps it when it is freed: each call
-touches its scratch memory page by page for the first time, about 77,000 page faults per `default`
+touches its scratch memory page by page for the first time, about 73,000 page faults per ``default``
 training step, a quarter of the step's CPU time spent in the kernel.
 
 glibc's tunable ``glibc.malloc.hugetlb=1`` asks for transparent huge pages on such mappings
@@ -16,8 +16,8 @@ and ``run.sh`` exports it; for your own scripts and notebooks, start Python with
 "Page faults").
 
 Keeping the scratch memory mapped instead (``mallopt``: one arena, no separate mappings) removes
-the faults too, but funnels every thread through one arena lock: compiles took 1.55x as long and a
-``tiny`` training 1.2x (measured while choosing this).
+the faults too, but funnels every thread through one arena lock: compiles slow down, and a ``tiny``
+training took 1.2x as long (the same benchmark at commit 3d0d52c, which did that).
 """
 
 from __future__ import annotations
