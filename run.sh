@@ -68,7 +68,7 @@ cmd="${1:-}"
 [ -n "$cmd" ] || die "usage: bash run.sh demo|test|<ne-jax sub-command> [flags]"
 shift
 setup
-# Huge pages for XLA:CPU's per-call scratch memory (40x fewer page faults; ne_jax/_host_memory.py),
+# Huge pages for XLA:CPU's per-call scratch memory (25x fewer page faults per step; ne_jax/_host_memory.py),
 # unless NE_JAX_HOST_MEMORY=system or GLIBC_TUNABLES already sets it (glibc ignores it elsewhere).
 if [ "${NE_JAX_HOST_MEMORY:-}" != system ] && [[ "${GLIBC_TUNABLES:-}" != *glibc.malloc.hugetlb* ]]; then
   export GLIBC_TUNABLES="${GLIBC_TUNABLES:+$GLIBC_TUNABLES:}glibc.malloc.hugetlb=1"
