@@ -365,10 +365,6 @@ def main(argv=None) -> None:
     if args.whole_only:
         print(json.dumps(measure_whole(args.repeats, args.quick)))
         return
-    if argv is None:  # the stage profile below: with huge pages, as ne-jax runs
-        from ne_jax._host_memory import reexec_with_huge_pages
-
-        reexec_with_huge_pages("experiments.profile_hot_path", sys.argv[1:])
     import jax
 
     whole = {"reference": [], "new": []}
