@@ -43,7 +43,10 @@ t.join()
 print(json.dumps(out))
 """
 
-_GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
+_LIBC = platform.libc_ver()
+_GLIBC = platform.system() == "Linux" and _LIBC[0] == "glibc"
+# glibc.malloc.hugetlb exists from glibc 2.35 on (older ones ignore it)
+_HUGETLB_TUNABLE = _GLIBC and tuple(int(x) for x in _LIBC[1].split(".")[:2]) >= (2, 35)
 
 
 def _thp_available() -> bool:
@@ -62,11 +65,11 @@ def _probe(tunables: str | None) -> float:
     return json.loads(out.stdout.strip().splitlines()[-1])["faults_per_block"]
 
 
-@pytest.mark.skipif(not (_GLIBC and _thp_available()), reason="glibc with transparent huge pages")
+@pytest.mark.skipif(not (_HUGETLB_TUNABLE and _thp_available()), reason="glibc >= 2.35 with transparent huge pages")
 def test_huge_pages_cut_the_faults_of_a_threads_large_blocks():
     system, huge = _probe(None), _probe(TUNABLE)
     assert system > 20_000  # a fresh mapping per block, a fault per 4 KiB page (25,600 pages)
-    assert huge < 0.05 * system
+    assert huge < 0.25 * system  # 50 faults with every huge page granted; margin for some 4 KiB fallbacks
 
 
 def test_the_environment_to_start_again_with(monkeypatch):
