@@ -38,22 +38,10 @@ TUNABLES = {"huge_pages": TUNABLE, "system": ""}
 def measure(steps: int, quick: bool) -> dict:
     """Per training step and per render chunk: ms, page faults, kernel and user CPU seconds."""
     import jax
-    import jax.numpy as jnp
 
-    from experiments.profile_hot_path import TRAIN_RAYS, build_inputs
-    from ne_jax.render.renderer import render_rays
-    from ne_jax.train.sampler import Batch
-    from ne_jax.train.state import init_train_state
-    from ne_jax.train.step import make_train_step
+    from experiments.profile_hot_path import whole_calls
 
-    run, scene, rrays, trays, _, _ = build_inputs(quick)
-    cfg, train_scene = run.render, scene.fitted(run.render, trays)
-    bg = jnp.ones(3)
-    state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
-    step = make_train_step(run.train, cfg)
-    batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
-                  background=bg)
-    render = jax.jit(lambda p, sc, r: render_rays(run.render, p, sc, r, bg))
+    render, step, state, _ = whole_calls(quick)
 
     def usage():
         r = resource.getrusage(resource.RUSAGE_SELF)
@@ -64,20 +52,20 @@ def measure(steps: int, quick: bool) -> dict:
                 "sys_s": (b[2] - a[2]) / steps, "user_s": (b[3] - a[3]) / steps}
 
     c0 = usage()
-    state, m = step(state, train_scene, batch)
+    state, m = step(state)
     m["loss/total"].block_until_ready()
     c1 = usage()
     for _ in range(2):  # compile the render, warm up
-        state, m = step(state, train_scene, batch)
-        render(state.params, scene, rrays).rgb.block_until_ready()
+        state, m = step(state)
+        render(state).rgb.block_until_ready()
     first_loss = float(m["loss/total"])
     t0 = usage()
     for _ in range(steps):
-        state, m = step(state, train_scene, batch)
+        state, m = step(state)
     m["loss/total"].block_until_ready()
     t1 = usage()
     for _ in range(steps):
-        out = render(state.params, scene, rrays)
+        out = render(state)
     out.rgb.block_until_ready()
     t2 = usage()
     return {"glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""), "devices": jax.device_count(),
@@ -103,8 +91,7 @@ def train_once(scene_dir: str, setting: str) -> dict:
 
 
 def _last_psnr(metrics: dict):
-    epochs = metrics.get("epochs") or []
-    return epochs[-1].get("psnr") if epochs and isinstance(epochs[-1], dict) else None
+    return (metrics.get("epochs") or [{}])[-1].get("psnr")
 
 
 def _env(setting: str) -> dict:

@@ -138,13 +138,13 @@ def build_inputs(quick: bool):
     return run, scene, render_rays, train_rays, build_s, float(np.mean(hits))
 
 
-def measure_whole(repeats: int, quick: bool) -> dict:
-    """Rays/s of the whole ``default`` render (one chunk) and training step, with whatever ``ne_jax``
-    is importable (this checkout, or the reference through ``PYTHONPATH``)."""
+def whole_calls(quick: bool):
+    """The whole render of the render batch and the whole training step on the training batch
+    (:func:`build_inputs`), with whatever ``ne_jax`` is importable: ``(render, step, state, new_api)``
+    with ``render(state) -> RenderOut``, ``step(state) -> (state, metrics)`` and the initial state."""
     import jax
     import jax.numpy as jnp
 
-    import ne_jax
     from ne_jax.render.renderer import render_rays
     from ne_jax.train.sampler import Batch
     from ne_jax.train.state import init_train_state
@@ -159,15 +159,23 @@ def measure_whole(repeats: int, quick: bool) -> dict:
 
         cfg, train_scene = fit_segment_budget(run.render, scene, trays), scene
     bg = jnp.ones(3)
-    params_state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
+    state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
     render = jax.jit(lambda p, sc, r: render_rays(run.render, p, sc, r, bg))
-    t_render = best_time(lambda: render(params_state.params, scene, rrays), repeats)
     step = make_train_step(run.train, cfg)
     batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
                   background=bg)
-    state = params_state
-    t_step = best_time(lambda: step(state, train_scene, batch)[1]["loss/total"], repeats)
-    out = step(state, train_scene, batch)[1]
+    return (lambda st: render(st.params, scene, rrays)), (lambda st: step(st, train_scene, batch)), state, new_api
+
+
+def measure_whole(repeats: int, quick: bool) -> dict:
+    """Rays/s of the whole ``default`` render (one chunk) and training step, with whatever ``ne_jax``
+    is importable (this checkout, or the reference through ``PYTHONPATH``)."""
+    import ne_jax
+
+    render, step, state, new_api = whole_calls(quick)
+    t_render = best_time(lambda: render(state), repeats)
+    t_step = best_time(lambda: step(state)[1]["loss/total"], repeats)
+    out = step(state)[1]
     if new_api:  # segments lost to the packing budget / to the traversal's capacities
         dropped, overflow = int(out["lost/packing"]), int(out["lost/frontier"]) + int(out["lost/slots"])
     else:
