@@ -10,7 +10,11 @@ only where no device count was given to JAX itself), so the ray mesh of :mod:`ne
 every core; ``NE_JAX_HOST_DEVICES=1`` opts out (:mod:`ne_jax._platform`).
 """
 
-from ne_jax._platform import configure_host_devices as _configure_host_devices
+from ne_jax._host_memory import reexec_entry_point as _reexec_entry_point
+
+_reexec_entry_point()  # `ne-jax`, `python -m ne_jax.<name>` / `experiments.<name>`: start again with huge pages
+
+from ne_jax._platform import configure_host_devices as _configure_host_devices  # noqa: E402
 
 _configure_host_devices()
 

@@ -26,8 +26,6 @@ import sys
 import time
 from pathlib import Path
 
-from ne_jax._host_memory import reexec_with_huge_pages
-
 SCENE_SPLITS = ("train", "val", "test")
 
 
@@ -446,12 +444,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    if argv is None:  # a process of its own: start again with huge pages for XLA's scratch memory
-        try:
-            reexec_with_huge_pages("ne_jax.cli", sys.argv[1:])
-        except ValueError as e:
-            print(f"ne-jax: error: {e}", file=sys.stderr)
-            return 2
     args = build_parser().parse_args(argv)
     try:
         if args.host_devices is not None:  # before anything touches JAX's backends

@@ -18,7 +18,7 @@ import sys
 import pytest
 
 from ne_jax import _host_memory
-from ne_jax._host_memory import ENV, TUNABLE, reexec_with_huge_pages, requested_policy, tunables_env
+from ne_jax._host_memory import ENV, TUNABLE, entry_point, reexec_with_huge_pages, requested_policy, tunables_env
 
 _PROBE = """
 import ctypes, json, resource, threading
@@ -97,6 +97,20 @@ def test_reexec_replaces_the_process_only_when_it_adds_something(monkeypatch):
     monkeypatch.setenv(ENV, "system")
     reexec_with_huge_pages("ne_jax.cli", [])
     assert len(calls) == 1
+
+
+def test_entry_points_are_the_console_script_and_dash_m_runs():
+    """``import ne_jax`` starts again for ``ne-jax`` and ``python [options] -m ne_jax.<name>`` /
+    ``experiments.<name>``; imports from tests, scripts and other programs are left alone."""
+    assert entry_point(["/venv/bin/python", "/venv/bin/ne-jax", "train", "scene"]) == ("ne_jax.cli", ["train", "scene"])
+    assert entry_point(["python", "-m", "experiments.train_benchmark", "--preset", "tiny"]) == (
+        "experiments.train_benchmark", ["--preset", "tiny"])
+    assert entry_point(["python", "-u", "-X", "dev", "-m", "ne_jax.cli", "view"]) == ("ne_jax.cli", ["view"])
+    assert entry_point(["python", "-m", "pytest", "tests", "-m", "slow"]) is None
+    assert entry_point(["python", "experiments/profile_hot_path.py", "--whole-only"]) is None
+    assert entry_point(["python", "-c", "import ne_jax"]) is None
+    assert entry_point(["python", "-m"]) is None
+    assert entry_point(["python"]) is None
 
 
 @pytest.mark.parametrize("env, expected", [({}, "huge_pages"), ({ENV: " Huge_Pages "}, "huge_pages"),

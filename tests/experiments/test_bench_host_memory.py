@@ -31,17 +31,3 @@ def test_the_table_takes_the_best_round_and_the_ratio():
     assert "| `default` training step (2,048 rays) | huge_pages | 280.0 | 2900 |" in md
     assert "training step 1.14x, render chunk 1.14x" in md
 
-
-def test_experiments_started_with_dash_m_start_again_with_huge_pages():
-    """``experiments/__init__.py`` re-execs ``python [options] -m experiments.<name> [args]`` (through
-    ``reexec_with_huge_pages``, which does nothing when the tunable is set or opted out); imports
-    from tests and scripts are left alone."""
-    from experiments import module_run
-
-    assert module_run(["python", "-m", "experiments.train_benchmark", "--preset", "tiny"]) == (
-        "experiments.train_benchmark", ["--preset", "tiny"])
-    assert module_run(["python", "-u", "-X", "dev", "-m", "experiments.make_benchmark"]) == (
-        "experiments.make_benchmark", [])
-    assert module_run(["python", "-m", "pytest", "tests", "-m", "slow"]) is None
-    assert module_run(["python", "experiments/profile_hot_path.py", "--whole-only"]) is None
-    assert module_run(["python", "-m"]) is None
