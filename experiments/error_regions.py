@@ -1,5 +1,5 @@
 """Where the error of trained models lives: each model's test views labelled by region
-(:mod:`ne_jax.eval.regions`: silhouette, hole, highlight, texture, flat, background), the share of
+(:mod:`ne_jax.eval.regions`: silhouette, hole, see-through, highlight, texture, flat, background), the share of
 the squared error and of the pixels per region, and one error-map row per model.
 
     python -m experiments.error_regions --run LABEL RUN_DIR SCENE_DIR [--run ...] --out error_regions_tiny
@@ -33,8 +33,8 @@ def measure(label: str, run_dir: Path, scene_dir: Path, view: int) -> tuple[dict
     """Score one model's test views by region; ``(record, error-map row of test view`` ``view``)."""
     model = load_trained(run_dir)
     split = load_split(scene_dir, "test")
-    report, images = evaluate_model(model, split, progress=False)
-    regions, labels = split_regions(split, images, model.background)
+    report, images, depths = evaluate_model(model, split, progress=False, with_depth=True)
+    regions, labels = split_regions(split, images, model.background, depths=depths)
     truth = composite(split.images, report["background"])
     record = {"label": label, "run": str(run_dir), "scene_dir": str(scene_dir), "config_key": config_key(model.run),
               "psnr": round(report["psnr"], 2), "ssim": round(report["ssim"], 4), "regions": regions}

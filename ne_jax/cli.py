@@ -67,8 +67,8 @@ def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True)
     from ne_jax.eval.regions import error_map_picture, split_regions
 
     split = load_split(scene_dir, split_name)
-    report, images = evaluate_model(model, split, progress=progress)
-    report["regions"], labels = split_regions(split, images, model.background)
+    report, images, depths = evaluate_model(model, split, progress=progress, with_depth=True)
+    report["regions"], labels = split_regions(split, images, model.background, depths=depths)
     truth = composite(split.images, report["background"])
     names = [f"{i:03d}_{Path(p).name}.png" for i, p in enumerate(split.file_paths)]
     save_images(images, out / "images", names)

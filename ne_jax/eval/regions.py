@@ -1,11 +1,16 @@
 """Where the error of a render lives: every pixel of a view gets one region, and the squared error
 is summed per region (a diagnosis before tuning, and an error-map picture).
 
-Regions, decided from the ground truth alone (plus the render for holes), first match wins:
+Regions, decided from the ground truth alone (plus the render for holes and see-through pixels),
+first match wins:
 
 * ``silhouette``: within ``edge_px`` pixels of the ground truth's alpha edge (alpha crosses 0.5);
 * ``hole``: object in the ground truth (alpha >= 0.5) that the render shows as background (every
   channel within ``hole_tol`` of the background colour, where the ground truth is farther from it);
+* ``see_through``: object pixels whose rendered depth lies behind the median depth of their 3 x 3
+  neighbourhood by more than ``see_through_step`` times that median: the ray passed the surface its
+  neighbours stop at and shows what lies behind it (needs the render's depth map; without one no
+  pixel is labelled so);
 * ``highlight``: object pixels brighter than the median of their ``window`` neighbourhood by more
   than ``highlight_step`` in luminance (specular spots and bright reflections);
 * ``texture``: object pixels where the ground truth's luminance gradient (Sobel, per pixel) exceeds
@@ -25,12 +30,13 @@ from scipy import ndimage
 
 from ne_jax.eval.metrics import MSE_FLOOR
 
-REGIONS = ("silhouette", "hole", "highlight", "texture", "flat", "background")
+REGIONS = ("silhouette", "hole", "see_through", "highlight", "texture", "flat", "background")
 """Region names, in the order they are assigned (a pixel gets the first that matches)."""
 
 COLORS = np.array([
     [1.0, 0.85, 0.0],   # silhouette: yellow
     [1.0, 0.0, 1.0],    # hole: magenta
+    [1.0, 0.25, 0.0],   # see_through: orange-red
     [1.0, 1.0, 1.0],    # highlight: white
     [0.0, 0.75, 1.0],   # texture: cyan
     [0.35, 0.35, 0.35],  # flat: grey
@@ -48,6 +54,7 @@ class RegionConfig:
     highlight_step: float = 0.12
     texture_grad: float = 0.08
     window: int = 7
+    see_through_step: float = 0.01
 
 
 def _luminance(rgb: np.ndarray) -> np.ndarray:
@@ -62,7 +69,7 @@ def _check(name: str, a: np.ndarray, shape: tuple) -> np.ndarray:
 
 
 def label_regions(target: np.ndarray, alpha: np.ndarray, pred: np.ndarray, background,
-                  cfg: RegionConfig = RegionConfig()) -> np.ndarray:
+                  cfg: RegionConfig = RegionConfig(), depth: np.ndarray | None = None) -> np.ndarray:
     """``[H, W]`` int8 region index (into :data:`REGIONS`) of every pixel.
 
     Args:
@@ -70,6 +77,8 @@ def label_regions(target: np.ndarray, alpha: np.ndarray, pred: np.ndarray, backg
         alpha: ``[H, W]`` the ground truth's alpha.
         pred: ``[H, W, 3]`` the render (on the same background).
         background: ``[3]`` the background colour.
+        depth: ``[H, W]`` the render's depth map (``RenderOut.depth``: expected distance, 0 where
+            nothing was hit), or ``None`` (then no pixel is ``see_through``).
     """
     target = np.asarray(target, np.float32)
     if target.ndim != 3 or target.shape[-1] != 3:
@@ -85,9 +94,15 @@ def label_regions(target: np.ndarray, alpha: np.ndarray, pred: np.ndarray, backg
     hole = obj & (np.abs(pred - bg).max(-1) <= cfg.hole_tol) & (np.abs(target - bg).max(-1) > cfg.hole_tol)
     bright = lum - ndimage.median_filter(lum, size=cfg.window, mode="nearest") > cfg.highlight_step
     grad = np.hypot(ndimage.sobel(lum, 0, mode="nearest"), ndimage.sobel(lum, 1, mode="nearest")) / 8.0  # per pixel
+    behind = np.zeros_like(obj)
+    if depth is not None:
+        depth = _check("depth", depth, target.shape[:2])
+        near = ndimage.median_filter(depth, size=3, mode="nearest")
+        behind = obj & (near > 0) & (depth - near > cfg.see_through_step * near)
     label = np.full(target.shape[:2], REGIONS.index("background"), np.int8)
+    # later wins: the reverse of REGIONS
     for name, mask in (("flat", obj), ("texture", obj & (grad > cfg.texture_grad)), ("highlight", obj & bright),
-                       ("hole", hole), ("silhouette", edge)):  # later wins: the reverse of REGIONS
+                       ("see_through", behind), ("hole", hole), ("silhouette", edge)):
         label[mask] = REGIONS.index(name)
     return label
 
@@ -112,11 +127,11 @@ def region_errors(labels: np.ndarray, pred: np.ndarray, target: np.ndarray) -> d
     return out
 
 
-def split_regions(split, images: np.ndarray, background, cfg: RegionConfig = RegionConfig()
-                  ) -> tuple[dict, np.ndarray]:
-    """:func:`region_errors` of renders ``images [N, H, W, 3]`` of a
-    :class:`~ne_jax.data.nerf_synthetic.SceneSplit` (its RGBA images are the ground truth, composited
-    on ``background``). Returns ``(report, labels [N, H, W])``."""
+def split_regions(split, images: np.ndarray, background, cfg: RegionConfig = RegionConfig(),
+                  depths: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
+    """:func:`region_errors` of renders ``images [N, H, W, 3]`` (with their depth maps ``depths``
+    ``[N, H, W]``, or ``None``) of a :class:`~ne_jax.data.nerf_synthetic.SceneSplit` (its RGBA images
+    are the ground truth, composited on ``background``). Returns ``(report, labels [N, H, W])``."""
     from ne_jax.data.nerf_synthetic import composite, parse_background
 
     bg = np.asarray(parse_background(background), np.float32)
@@ -125,7 +140,10 @@ def split_regions(split, images: np.ndarray, background, cfg: RegionConfig = Reg
     if images.shape != truth.shape:
         raise ValueError(f"images: expected the split's shape {list(truth.shape)}, found {list(images.shape)}")
     alpha = split.images[..., 3]
-    labels = np.stack([label_regions(t, a, p, bg, cfg) for t, a, p in zip(truth, alpha, images)])
+    if depths is not None and np.shape(depths) != images.shape[:3]:
+        raise ValueError(f"depths: expected shape {list(images.shape[:3])}, found {list(np.shape(depths))}")
+    depths = [None] * len(images) if depths is None else depths
+    labels = np.stack([label_regions(t, a, p, bg, cfg, d) for t, a, p, d in zip(truth, alpha, images, depths)])
     return region_errors(labels, images, truth), labels
 
 

@@ -72,19 +72,22 @@ def _ray_image(cfg, params, scene, camera, background, near, far):
 
 
 def _render_all(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Sequence[Camera], background,
-                near: float, far: float, progress: bool, desc: str, image_fn=None) -> tuple[np.ndarray, np.ndarray]:
-    """Images ``[N, H, W, 3]`` float32 and the segments each view lost ``[N]`` (``RenderOut.lost.count``)."""
+                near: float, far: float, progress: bool, desc: str, image_fn=None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Images ``[N, H, W, 3]`` float32, depth maps ``[N, H, W]`` float32 and the segments each view lost
+    ``[N]`` (``RenderOut.lost.count``)."""
     bg = parse_background(background)
     image_fn = _ray_image if image_fn is None else image_fn
-    images, lost = [], []
+    images, depths, lost = [], [], []
     for cam in tqdm(cameras, desc=desc, unit="view", disable=not progress):
         out = image_fn(cfg, params, scene, cam, bg, near, far)
-        rgb, n_lost = jax.device_get((out.rgb, out.lost.count.sum()))
+        rgb, depth, n_lost = jax.device_get((out.rgb, out.depth, out.lost.count.sum()))
         images.append(np.asarray(rgb, np.float32))
+        depths.append(np.asarray(depth, np.float32))
         lost.append(int(n_lost))
     if not images:
         raise ValueError("render_views: expected at least one camera, found none")
-    return np.stack(images), np.asarray(lost, np.int64)
+    return np.stack(images), np.stack(depths), np.asarray(lost, np.int64)
 
 
 def render_views(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Sequence[Camera], background,
@@ -98,7 +101,7 @@ def render_views(cfg: RenderConfig, params: dict, scene: PointScene, cameras: Se
 
 def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: SceneSplit, background,
                    near: float, far: float, progress: bool = True, image_fn=None,
-                   lpips_net: str | None = LPIPS_DEFAULT_NET) -> tuple[dict, np.ndarray]:
+                   lpips_net: str | None = LPIPS_DEFAULT_NET, with_depth: bool = False) -> tuple:
     """Render every view of ``split`` at full resolution and score it.
 
     ``image_fn``: another image renderer with :func:`~ne_jax.render.renderer.render_image`'s
@@ -108,8 +111,9 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
 
     Targets are the split's RGBA images composited on ``background`` with
     :func:`~ne_jax.data.nerf_synthetic.composite`; the renderer gets the same background colour.
-    Returns ``(report, images)``: ``images`` ``[N, H, W, 3]`` float32 the renders, and ``report`` a
-    JSON-able dict::
+    Returns ``(report, images)``, or ``(report, images, depths)`` with ``with_depth``: ``images``
+    ``[N, H, W, 3]`` float32 the renders, ``depths`` ``[N, H, W]`` float32 their depth maps
+    (``RenderOut.depth``), and ``report`` a JSON-able dict::
 
         {"split": name, "num_views": N, "height": H, "width": W, "background": [r, g, b],
          "psnr": mean over views, "ssim": mean over views, "lpips": mean over views,
@@ -127,7 +131,8 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
     (:data:`~ne_jax.eval.metrics.LPIPS_MIN_SIZE`)."""
     bg = parse_background(background)
     cameras = split.cameras()
-    images, lost = _render_all(cfg, params, scene, cameras, bg, near, far, progress, f"evaluate {split.name}", image_fn)
+    images, depths, lost = _render_all(cfg, params, scene, cameras, bg, near, far, progress, f"evaluate {split.name}",
+                                       image_fn)
     targets = composite(split.images, bg).astype(np.float32)
     score_lpips = _lpips_scorer(lpips_net, split.height, split.width)
     views = []
@@ -152,12 +157,12 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
         "lost_segments": int(lost.sum()),
         "views": views,
     }
-    return report, images
+    return (report, images, depths) if with_depth else (report, images)
 
 
-def evaluate_model(model: TrainedModel, split: SceneSplit, **kwargs) -> tuple[dict, np.ndarray]:
+def evaluate_model(model: TrainedModel, split: SceneSplit, **kwargs) -> tuple:
     """:func:`evaluate_split` of ``model``: its render config, parameters, point scene, background and
-    near/far (``kwargs``: ``progress``, ``image_fn``, ``lpips_net``)."""
+    near/far (``kwargs``: ``progress``, ``image_fn``, ``lpips_net``, ``with_depth``)."""
     return evaluate_split(model.run.render, model.params, model.scene, split, model.background, model.near,
                           model.far, **kwargs)
 

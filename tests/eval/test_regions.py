@@ -69,3 +69,22 @@ def test_bad_shapes_are_named():
         label_regions(target, alpha, target[..., :2], BG)
     with pytest.raises(ValueError, match="labels: expected the images' shape"):
         region_errors(np.zeros((4, 4), np.int8), target, target)
+
+
+def test_a_pixel_behind_its_neighbours_is_see_through():
+    """A ray that passed the surface its neighbours stop at (rendered depth behind their median) is
+    ``see_through``; the same render without a depth map is not, nor is a smooth slope of depth."""
+    target, alpha, _, _ = _scene()
+    pred = target.copy()
+    pred[30, 30] = (0.1, 0.1, 0.1)  # a dark dot: the far side of the object shows through
+    y, x = np.mgrid[:48, :48].astype(np.float32)
+    depth = np.where(alpha > 0, 3.0 + 0.005 * x, 0.0).astype(np.float32)  # a tilted surface: no pixel behind
+    assert not (label_regions(target, alpha, pred, BG, depth=depth) == REGIONS.index("see_through")).any()
+    depth[30, 30] = 3.4
+    labels = label_regions(target, alpha, pred, BG, depth=depth)
+    assert REGIONS[labels[30, 30]] == "see_through"
+    assert (labels == REGIONS.index("see_through")).sum() == 1
+    assert REGIONS[label_regions(target, alpha, pred, BG)[30, 30]] == "flat"  # no depth map: not decided
+    assert region_errors(labels, pred, target)["see_through"]["error"] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match=r"depth: expected shape \[48, 48\], found \[48, 47\]"):
+        label_regions(target, alpha, pred, BG, depth=depth[:, :47])

@@ -36,7 +36,7 @@ from ne_jax.eval import (
 from ne_jax.eval import views as views_module
 from ne_jax.geometry.capacity import Lost
 from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import PointScene
+from ne_jax.render.renderer import PointScene, render_image
 from ne_jax.render.shading import init_color_model
 
 from tests.mini_presets import mini_benchmark, tiny_render
@@ -89,6 +89,17 @@ def test_evaluate_split_reports_per_view_metrics_of_the_returned_images(world):
     # the same renders as render_views of the split's cameras
     again = render_views(RCFG, world["params"], world["scene"], split.cameras(), "white", NEAR, FAR, progress=False)
     np.testing.assert_allclose(again, images, atol=1e-6)
+
+    # with_depth: the same images and report, and each view's depth map as render_image gives it
+    with pytest.warns(RuntimeWarning, match="LPIPS is reported as null"):
+        report2, images2, depths = evaluate_split(RCFG, world["params"], world["scene"], split, "white", NEAR, FAR,
+                                                  progress=False, with_depth=True)
+    np.testing.assert_array_equal(images2, images)
+    assert report2["psnr"] == report["psnr"]
+    assert depths.shape == images.shape[:3] and depths.dtype == np.float32
+    first = render_image(RCFG, world["params"], world["scene"], split.camera(0), np.ones(3, np.float32), NEAR, FAR)
+    np.testing.assert_allclose(depths[0], np.asarray(first.depth), atol=1e-6)
+    assert depths.max() > NEAR  # the object is seen
 
 
 def test_evaluate_split_uses_the_users_background(world):
