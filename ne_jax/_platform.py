@@ -24,14 +24,6 @@ everything runs on the devices JAX has.
 Separate from the device count: XLA:CPU keeps one intra-op thread pool for the whole process (not
 one per device), so N devices on N cores do not multiply the threads (measured in
 ``experiments/bench_devices.py``).
-
-Patient collectives: the devices of one process meet in an all-reduce (the gradient sum of a
-training step), and XLA:CPU aborts the whole process when one device's thread has not arrived
-60 s after the others (20 s until a warning, 40 s more until the abort). On a machine shared with
-other jobs a device's thread can be starved that long, which killed `default` trainings here. So
-:func:`configure_host_devices` also raises those limits in ``XLA_FLAGS`` (:data:`COLLECTIVE_TIMEOUTS`:
-a warning after 10 minutes, the abort after an hour), unless the user gave them, before JAX's
-backends start.
 """
 
 from __future__ import annotations
@@ -43,12 +35,6 @@ ENV = "NE_JAX_HOST_DEVICES"
 """Environment variable: how many host (CPU) devices ne_jax asks JAX for; 1 opts out."""
 
 XLA_FLAG = "--xla_force_host_platform_device_count"
-
-COLLECTIVE_TIMEOUTS = {
-    "--xla_cpu_collective_call_warn_stuck_timeout_seconds": 600,
-    "--xla_cpu_collective_call_terminate_timeout_seconds": 3600,
-}
-"""XLA:CPU's limits on how long the devices of a collective wait for each other (module docstring)."""
 
 _applied: int | None = None  # the count this module gave jax_num_cpu_devices, if any
 _warned = False
@@ -86,29 +72,17 @@ def requested_host_devices(environ=None) -> int | None:
     return usable_cores()
 
 
-def patient_collective_flags(xla_flags: str) -> str:
-    """``xla_flags`` (an ``XLA_FLAGS`` value) with each of :data:`COLLECTIVE_TIMEOUTS` appended where
-    the value does not set it already."""
-    given = {f.split("=", 1)[0] for f in xla_flags.split()}
-    extra = [f"{k}={v}" for k, v in COLLECTIVE_TIMEOUTS.items() if k not in given]
-    return " ".join([xla_flags.strip(), *extra]).strip()
-
-
 def configure_host_devices(environ=None) -> int | None:
     """Give JAX ``requested_host_devices(environ)`` host devices, before its backends start.
 
     Returns the count set, or ``None`` where nothing was set (JAX's own setting kept, an
     accelerator platform, or the backends already running: then one warning per process, if the
     count JAX has differs from the one asked for). Called on ``import ne_jax`` and again by the
-    ``ne-jax --host-devices`` flag; safe to call again while JAX has not started. Before the
-    backends start it also makes the collectives patient (:func:`patient_collective_flags` on
-    ``os.environ["XLA_FLAGS"]``; module docstring)."""
+    ``ne-jax --host-devices`` flag; safe to call again while JAX has not started."""
     global _applied, _warned
     import jax
     from jax._src import xla_bridge
 
-    if not xla_bridge.backends_are_initialized():
-        os.environ["XLA_FLAGS"] = patient_collective_flags(os.environ.get("XLA_FLAGS", ""))
     current = jax.config.jax_num_cpu_devices
     if current != -1 and current != _applied:  # the user's own jax.config.update
         return None
@@ -133,5 +107,4 @@ def configure_host_devices(environ=None) -> int | None:
     return _applied
 
 
-__all__ = ["COLLECTIVE_TIMEOUTS", "ENV", "XLA_FLAG", "configure_host_devices", "patient_collective_flags",
-           "requested_host_devices", "usable_cores"]
+__all__ = ["ENV", "XLA_FLAG", "configure_host_devices", "requested_host_devices", "usable_cores"]

@@ -16,14 +16,7 @@ import sys
 import jax
 import pytest
 
-from ne_jax._platform import (
-    COLLECTIVE_TIMEOUTS,
-    ENV,
-    XLA_FLAG,
-    patient_collective_flags,
-    requested_host_devices,
-    usable_cores,
-)
+from ne_jax._platform import ENV, XLA_FLAG, requested_host_devices, usable_cores
 from ne_jax.cli import build_parser
 from ne_jax.devices import even_mesh, ray_mesh
 
@@ -103,50 +96,3 @@ def test_host_devices_flag_is_parsed_and_checked(capsys):
 
     assert main(["--host-devices", "0", "export", "run", "--out", "x.ply"]) == 2
     assert "--host-devices: expected an integer >= 1 (1 opts out), found 0" in capsys.readouterr().err
-
-
-WARN, TERMINATE = COLLECTIVE_TIMEOUTS
-
-
-def test_patient_collective_flags_keep_the_users_own():
-    assert patient_collective_flags("") == f"{WARN}=600 {TERMINATE}=3600"
-    mine = f"--xla_dump_to=/tmp {TERMINATE}=5"
-    assert patient_collective_flags(mine) == f"{mine} {WARN}=600"
-    once = patient_collective_flags("")
-    assert patient_collective_flags(once) == once
-
-
-# One device spins for a while before a psum that the other reaches at once: XLA:CPU's collective
-# timeouts decide whether the process survives the wait.
-_STALL = """
-import sys, time
-{imports}
-import jax, jax.numpy as jnp
-from jax import shard_map
-from jax.sharding import Mesh, PartitionSpec as P
-mesh = Mesh(jax.devices()[:2], ("d",))
-def body(x):
-    n = jnp.where(jax.lax.axis_index("d") == 0, {iterations}, 1)
-    _, a = jax.lax.while_loop(lambda c: c[0] < n, lambda c: (c[0] + 1, jnp.sin(c[1]) * 1.0001), (0, x))
-    return jax.lax.psum(a, "d")
-f = jax.jit(shard_map(body, mesh=mesh, in_specs=P("d"), out_specs=P()))
-f(jnp.ones(512)).block_until_ready()
-f = jax.jit(shard_map(body, mesh=mesh, in_specs=P("d"), out_specs=P()))  # compiled; now time the stall
-t = time.perf_counter(); f(jnp.ones(512) * 0.5).block_until_ready()
-print("survived", round(time.perf_counter() - t, 1))
-"""
-
-
-def test_the_timeout_flags_are_the_ones_xla_cpu_reads():
-    """With 1 s / 1 s limits a device waiting several seconds for the other aborts the process, so
-    XLA:CPU reads these flag names (a renamed flag would leave the default 20 s / 40 s, and the
-    process would survive); under ``import ne_jax`` the same wait passes and the flags are set."""
-    stall = dict(iterations=12_000_000)  # about 8 s here: well past 2 s on a faster machine
-    short = f"{WARN}=1 {TERMINATE}=1 {XLA_FLAG}=2"
-    proc = _python(_STALL.format(imports="", **stall), XLA_FLAGS=short)
-    assert proc.returncode != 0 and "Termination timeout" in proc.stderr, (proc.returncode, proc.stderr[-2000:])
-    proc = _python(_STALL.format(imports="import os, ne_jax; print(os.environ['XLA_FLAGS'])", **stall), **{ENV: "2"})
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    flags, result = proc.stdout.strip().splitlines()[-2:]
-    assert f"{WARN}=600" in flags and f"{TERMINATE}=3600" in flags
-    assert result.startswith("survived")
