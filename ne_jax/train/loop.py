@@ -133,6 +133,12 @@ def _epoch_summary(metrics: list[dict]) -> dict:
     return out
 
 
+INFLIGHT_STEPS = 8
+"""At most this many training steps run ahead of the host: every ``INFLIGHT_STEPS``-th step waits for
+its loss. Unbounded, the host queues dozens of steps, and XLA:CPU (jaxlib 0.10) can then deadlock a
+step split over several devices: one device waits in the step's all-reduce while the other's launch
+waits, on a thread of the same pool, for a slot of its 32 computations in flight (docs/devices.md)."""
+
 TRAINING_GROWS = ("packing",)
 """The buffers a training run grows after an epoch that lost into them. The traversal's frontier and
 slots are a training step's speed settings (a preset is chosen with them, docs/studies/
@@ -267,6 +273,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                     batch = sample_batch(sampler, pool, jax.random.fold_in(k_batch, i))
                     state, m = step_fn(state, scene, batch)
                     metrics.append(m)
+                    if (i + 1) % INFLIGHT_STEPS == 0:
+                        jax.block_until_ready(m["loss/total"])
                     if (i + 1) % run.log_every == 0 or i + 1 == step0 + run.steps_per_epoch:
                         last = jax.device_get({"loss": m["loss/total"], "psnr": m["psnr"]})
                         bar.set_postfix(epoch=epoch, loss=f"{float(last['loss']):.4f}",

@@ -124,7 +124,8 @@ def _flat_image_fn(color):
     """An ``image_fn`` that "renders" every camera as one flat colour (no renderer, no compilation)."""
     def image_fn(cfg, params, scene, camera, background, near, far):
         rgb = jnp.broadcast_to(jnp.asarray(color, jnp.float32), (camera.height, camera.width, 3))
-        return types.SimpleNamespace(rgb=rgb, lost=Lost.none((camera.height, camera.width)))
+        return types.SimpleNamespace(rgb=rgb, depth=jnp.zeros((camera.height, camera.width)),
+                                     lost=Lost.none((camera.height, camera.width)))
     return image_fn
 
 

@@ -25,8 +25,8 @@ from ne_jax.pointcloud.rounds import (
     select_growth,
 )
 from ne_jax.render.renderer import PointScene
-from ne_jax.train import CheckpointError, TrainConfig, make_train_step, sample_batch
-from ne_jax.train.loop import TRAINING_GROWS, train
+from ne_jax.train import CheckpointError, TrainConfig, loop, make_train_step, sample_batch
+from ne_jax.train.loop import INFLIGHT_STEPS, TRAINING_GROWS, train
 from ne_jax.train.model import load_trained
 from ne_jax.train.sampler import build_pool
 
@@ -159,6 +159,19 @@ def test_a_scene_with_one_view_trains(scene_dir, tmp_path):
                     log=lambda s: None)
     assert any("min_views" in str(w.message) for w in caught)
     assert int(res.state.step) == 3 and np.isfinite(res.history[-1]["loss/total"])
+
+
+def test_the_host_waits_for_every_inflight_steps_th_step(scene_dir, tmp_path, monkeypatch):
+    """No more than INFLIGHT_STEPS steps are queued ahead of the host (the XLA:CPU deadlock of
+    docs/devices.md needs about 32 per device): the loop waits for steps 8, 16, ... of each run."""
+    waited = []
+    real = jax.block_until_ready
+    monkeypatch.setattr(loop.jax, "block_until_ready", lambda x: waited.append(x) or real(x))
+    steps = 2 * INFLIGHT_STEPS + 3
+    res = train(mini_run(epochs=1, steps_per_epoch=steps, round_epochs=(1, 0), log_every=1000), scene_dir,
+                tmp_path / "r", progress=False, log=lambda s: None)
+    assert int(res.state.step) == steps
+    assert len(waited) == steps // INFLIGHT_STEPS and all(np.ndim(w) == 0 for w in waited)  # the step's loss
 
 
 # ---------------------------------------------------------------- point-cloud rounds
