@@ -135,7 +135,7 @@ def main(argv=None) -> None:
                             "commit": started_at}
             print(json.dumps(scenes[name]), flush=True)
             # after every scene: a long run keeps what it has
-            text = write_results(args.preset, run, scenes, args.results, name=benchmark)
+            text = write_results(args.preset, run, scenes, args.results, name=benchmark, sets=args.set)
     print(text)
 
 
@@ -149,9 +149,11 @@ def _earlier_scenes(name: str, run, results: Path) -> dict:
     return old.get("scenes", {}) if old.get("config_key") == config_key(run) else {}
 
 
-def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name: str | None = None) -> str:
+def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name: str | None = None,
+                  sets: list[str] = ()) -> str:
     """``train_benchmark_<name>.{json,md}`` in ``results``: ``name`` is the training ``preset`` on its
-    own (ray-cast) benchmark, ``<preset>_pt`` on the path-traced one."""
+    own (ray-cast) benchmark, ``<preset>_pt`` on the path-traced one; ``sets``: the ``--set`` changes to
+    the preset (recorded, and in the re-run command)."""
     name = name or preset
     scenes = {**_earlier_scenes(name, run, results), **scenes}  # scenes run one at a time accumulate
     report = {
@@ -165,17 +167,18 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
         "preset": preset, "benchmark": name,
         "commit": ", ".join(sorted({s.get("commit", "unknown") for s in scenes.values()})),
         "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
-        "batch_size": run.sampler.batch_size, "background": run.background,
+        "batch_size": run.sampler.batch_size, "background": run.background, "set": list(sets),
         "scenes": scenes,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
     }
     results.mkdir(parents=True, exist_ok=True)
     atomic_write_json(results / f"train_benchmark_{name}.json", report)
-    rerun = f"`python -m experiments.train_benchmark --preset {preset}`"
+    changes = "".join(f" --set {s}" for s in sets)
+    rerun = f"`python -m experiments.train_benchmark --preset {preset}{changes}`"
     if name != preset:  # a benchmark variant: its folder is an input
         rerun = (f"on the `{name}` benchmark, `python -m experiments.train_benchmark --preset {preset} --root "
-                 f"BENCH/{name} --runs RUNS` (BENCH from `python -m experiments.make_benchmark --preset {name} "
-                 f"--out BENCH`)")
+                 f"BENCH/{name} --runs RUNS{changes}` (BENCH from `python -m experiments.make_benchmark --preset "
+                 f"{name} --out BENCH`)")
     lines = [f"Preset `{preset}`: {run.epochs} epochs x {run.steps_per_epoch} steps of {run.sampler.batch_size} "
              f"rays; commit {report['commit']}, config key {report['config_key']}; {rerun}.", "",
              "| scene | test PSNR (dB) | test SSIM | train time (s) | points initial -> final | "

@@ -90,6 +90,12 @@ def test_a_path_traced_root_names_its_own_results(tmp_path):
     assert set(pt["scenes"]) == {"stool"} and pt["benchmark"] == "tiny_pt" and pt["preset"] == "tiny"
     assert "--root BENCH/tiny_pt" in (out / "train_benchmark_tiny_pt.md").read_text()
     assert set(tb._earlier_scenes("tiny_pt", run, out)) == {"stool"}
+    # a preset changed with --set says so in the re-run command and the JSON
+    tb.write_results("tiny", run, {"cup": row}, tmp_path / "set", sets=["render.kdtree.margin_factor=1.5"])
+    md = (tmp_path / "set" / "train_benchmark_tiny.md").read_text()
+    assert "--preset tiny --set render.kdtree.margin_factor=1.5`" in md
+    assert json.loads((tmp_path / "set" / "train_benchmark_tiny.json").read_text())["set"] == [
+        "render.kdtree.margin_factor=1.5"]
 
 
 def test_set_names_an_unknown_field(capsys):
