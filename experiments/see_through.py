@@ -33,11 +33,10 @@ OBJECT_ALPHA = 0.5
 def crossing_report(model, split, views: list[int], depths: dict, labels: dict) -> dict:
     """Step 1 of the module docstring, over ``views`` (their depth maps and region labels)."""
     import jax
-    from scipy import ndimage
     from scipy.spatial import cKDTree
 
     from ne_jax.data.rays import camera_rays
-    from ne_jax.eval.regions import REGIONS
+    from ne_jax.eval.regions import REGIONS, neighbour_depth
     from ne_jax.geometry.intersect import intersect
 
     tree, cfg = model.scene.tree, model.run.render.kdtree
@@ -50,7 +49,7 @@ def crossing_report(model, split, views: list[int], depths: dict, labels: dict) 
     for v in views:
         rays = camera_rays(split.camera(v), model.near, model.far)
         depth = depths[v].reshape(-1)
-        near = ndimage.median_filter(depths[v], size=3, mode="nearest").reshape(-1)
+        near = neighbour_depth(depths[v]).reshape(-1)
         label = labels[v].reshape(-1)
         idx = np.flatnonzero(label == see)
         origin, direction = np.asarray(rays.origin), np.asarray(rays.direction)
@@ -77,6 +76,7 @@ def margin_row(model, split, views: list[int], margin: float | None) -> tuple[di
     """Render ``views`` with the tree rebuilt at ``margin`` (``None``: the model's own tree). Returns
     ``(row, depths, labels)``."""
     from ne_jax.data.nerf_synthetic import composite, parse_background
+    from ne_jax.eval.metrics import psnr
     from ne_jax.eval.regions import REGIONS, label_regions, region_errors
     from ne_jax.render.renderer import PointScene
 
@@ -86,7 +86,7 @@ def margin_row(model, split, views: list[int], margin: float | None) -> tuple[di
         model = model.replace(run=dataclasses.replace(model.run, render=render),
                               scene=PointScene.build(model.scene.points, render, model.scene.capacities))
     bg = np.asarray(parse_background(model.background), np.float32)
-    psnr, seconds, segments, depths, labels, preds, truths = [], [], [], {}, {}, [], []
+    scores, seconds, segments, depths, labels, preds, truths = [], [], [], {}, {}, [], []
     for v in views:
         truth = composite(split.images[v:v + 1], bg)[0].astype(np.float32)
         alpha = np.asarray(split.images[v][..., 3])
@@ -96,14 +96,14 @@ def margin_row(model, split, views: list[int], margin: float | None) -> tuple[di
         seconds.append(time.perf_counter() - t0)
         depths[v] = np.asarray(out.depth, np.float32)
         labels[v] = label_regions(truth, alpha, pred, bg, depth=depths[v])
-        psnr.append(float(-10 * np.log10(max(np.mean((pred - truth) ** 2), 1e-10))))
+        scores.append(float(psnr(pred, truth)))
         segments.append(float(np.asarray(out.num_segments)[alpha >= OBJECT_ALPHA].mean()))
         preds.append(pred)
         truths.append(truth)
     errors = region_errors(np.stack([labels[v] for v in views]), np.stack(preds), np.stack(truths))
     see = REGIONS.index("see_through")
-    row = {"margin_factor": float(model.run.render.kdtree.margin_factor), "psnr": round(float(np.mean(psnr)), 2),
-           "psnr_per_view": [round(p, 2) for p in psnr],
+    row = {"margin_factor": float(model.run.render.kdtree.margin_factor), "psnr": round(float(np.mean(scores)), 2),
+           "psnr_per_view": [round(p, 2) for p in scores],
            "see_through_pixels": int(sum((labels[v] == see).sum() for v in views)),
            "see_through_error_share": round(errors["see_through"]["error"], 4),
            "segments_per_object_ray": round(float(np.mean(segments)), 2),

@@ -68,6 +68,12 @@ def _check(name: str, a: np.ndarray, shape: tuple) -> np.ndarray:
     return a
 
 
+def neighbour_depth(depth: np.ndarray) -> np.ndarray:
+    """``[H, W]`` the median depth of each pixel's 3 x 3 neighbourhood (itself included): the surface
+    the ``see_through`` rule compares a pixel's own rendered depth with."""
+    return ndimage.median_filter(np.asarray(depth, np.float32), size=3, mode="nearest")
+
+
 def label_regions(target: np.ndarray, alpha: np.ndarray, pred: np.ndarray, background,
                   cfg: RegionConfig = RegionConfig(), depth: np.ndarray | None = None) -> np.ndarray:
     """``[H, W]`` int8 region index (into :data:`REGIONS`) of every pixel.
@@ -97,7 +103,7 @@ def label_regions(target: np.ndarray, alpha: np.ndarray, pred: np.ndarray, backg
     behind = np.zeros_like(obj)
     if depth is not None:
         depth = _check("depth", depth, target.shape[:2])
-        near = ndimage.median_filter(depth, size=3, mode="nearest")
+        near = neighbour_depth(depth)
         behind = obj & (near > 0) & (depth - near > cfg.see_through_step * near)
     label = np.full(target.shape[:2], REGIONS.index("background"), np.int8)
     # later wins: the reverse of REGIONS
@@ -155,5 +161,5 @@ def error_map_picture(target: np.ndarray, pred: np.ndarray, labels: np.ndarray, 
     return np.concatenate([np.clip(target, 0, 1), np.clip(pred, 0, 1), heat, COLORS[labels]], axis=1)
 
 
-__all__ = ["COLORS", "REGIONS", "RegionConfig", "error_map_picture", "label_regions", "region_errors",
-           "split_regions"]
+__all__ = ["COLORS", "REGIONS", "RegionConfig", "error_map_picture", "label_regions", "neighbour_depth",
+           "region_errors", "split_regions"]
