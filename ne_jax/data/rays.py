@@ -101,12 +101,25 @@ def pixel_rays(camera: Camera, pixels: jax.Array, near: float, far: float) -> Ra
     return rays_through_pixels(camera.c2w, camera.fx, camera.fy, camera.cx, camera.cy, pixels, near, far)
 
 
-def pixel_centers(width: int, height: int) -> np.ndarray:
-    """``[H * W, 2]`` pixel centres ``(i + 0.5, j + 0.5)`` in row-major order (row 0 first)."""
+def subpixel_offsets(n: int) -> np.ndarray:
+    """``[n * n, 2]`` positions ``((a + 0.5) / n, (b + 0.5) / n)`` inside a pixel, ``(x, y)``, row
+    by row: the regular grid of a pixel's ``n x n`` rays (``n = 1``: the centre)."""
+    if int(n) < 1:
+        raise ValueError(f"subpixel_offsets: expected n >= 1 rays per pixel side, found {n}")
+    b, a = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    return ((np.stack([a.ravel(), b.ravel()], axis=-1) + 0.5) / n).astype(np.float32)
+
+
+def pixel_centers(width: int, height: int, pixel_samples: int = 1) -> np.ndarray:
+    """``[H * W * n * n, 2]`` image positions of every pixel's ``n x n`` rays
+    (:func:`subpixel_offsets`, ``n = pixel_samples``), pixels in row-major order (row 0 first) and
+    each pixel's rays consecutive; ``n = 1``: the pixel centres ``(i + 0.5, j + 0.5)``."""
     j, i = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
-    return np.stack([i.ravel() + 0.5, j.ravel() + 0.5], axis=-1).astype(np.float32)
+    corners = np.stack([i.ravel(), j.ravel()], axis=-1).astype(np.float32)
+    return (corners[:, None, :] + subpixel_offsets(pixel_samples)[None]).reshape(-1, 2)
 
 
-def camera_rays(camera: Camera, near: float, far: float) -> Rays:
-    """All ``H * W`` pixel-centre rays of ``camera`` in row-major order."""
-    return pixel_rays(camera, jnp.asarray(pixel_centers(camera.width, camera.height)), near, far)
+def camera_rays(camera: Camera, near: float, far: float, pixel_samples: int = 1) -> Rays:
+    """All rays of ``camera``: ``pixel_samples x pixel_samples`` per pixel (:func:`pixel_centers`;
+    1: the pixel centres), ``[H * W * pixel_samples**2]`` in row-major pixel order."""
+    return pixel_rays(camera, jnp.asarray(pixel_centers(camera.width, camera.height, pixel_samples)), near, far)

@@ -56,6 +56,7 @@ from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from ne_jax.checks import stage_check, throw
+from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.devices import default_mesh, padded_size, shard_rays
 from ne_jax.geometry.capacity import BUFFERS, Capacities, Lost, LostCounts, fit_packing, grow
@@ -99,6 +100,13 @@ class RenderConfig:
     traditional point sampling" — shade each of the segment's ``s`` samples on its own and composite
     it as its own ``1/s`` sub-interval of the segment (see the module docstring)."""
 
+    pixel_samples: int = dataclasses.field(default=1, metadata={KEY_OMITS_DEFAULT: True})
+    """Rays per pixel side: a pixel is the mean of an ``n x n`` regular grid of rays over its area
+    (:func:`~ne_jax.data.rays.subpixel_offsets`), as the benchmark's ground truth is made (ray caster:
+    a 2 x 2 or 3 x 3 grid; path tracer: random positions). 1: the pixel-centre ray. Rendering an image
+    costs ``n**2`` times the rays that meet the scene; training keeps the batch's rays, so a batch
+    holds ``batch_size / n**2`` pixels (the photometric loss compares each pixel's mean colour)."""
+
     checks: bool = False
     """Runtime finiteness checks (:mod:`ne_jax.checks`): the first NaN / Inf raises
     :class:`~ne_jax.checks.NonFiniteError` naming the stage that produced it (``traversal``,
@@ -117,6 +125,9 @@ class RenderConfig:
             )
         if self.chunk < 1:
             raise ValueError(f"RenderConfig.chunk: expected a positive integer, found {self.chunk}")
+        if int(self.pixel_samples) < 1:
+            raise ValueError("RenderConfig.pixel_samples: expected rays per pixel side >= 1, "
+                             f"found {self.pixel_samples}")
 
     def replace(self, **changes) -> RenderConfig:
         return dataclasses.replace(self, **changes)
@@ -528,8 +539,15 @@ def _background_out(color: np.ndarray) -> RenderOut:
 def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
                  near: float, far: float, progress: bool | None = None, mesh: Mesh | None = None) -> RenderOut:
     """Render every pixel of ``camera`` (rays split over ``mesh``, see :func:`render_chunked`);
-    fields are reshaped to images (``rgb`` ``[H, W, 3]``)."""
-    rays = camera_rays(camera, near, far)
+    fields are reshaped to images (``rgb`` ``[H, W, 3]``). With ``cfg.pixel_samples = n > 1`` each
+    pixel renders ``n x n`` rays: its ``rgb``, ``opacity``, ``depth`` and ``normal`` are their means,
+    ``num_segments`` their sum, and ``lost`` stays per ray (``[H, W, n * n]``)."""
+    n = cfg.pixel_samples ** 2
+    rays = camera_rays(camera, near, far, cfg.pixel_samples)
     out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image", mesh=mesh)
     h, w = camera.height, camera.width
-    return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out)
+    pixels = lambda a, reduce: reduce(a.reshape((h, w, n) + a.shape[1:]), axis=2)  # noqa: E731
+    means = {f: pixels(getattr(out, f), jnp.mean) for f in ("rgb", "opacity", "depth", "normal")}
+    per_ray = (h, w) + ((n,) if n > 1 else ())
+    return out.replace(**means, num_segments=pixels(out.num_segments, jnp.sum),
+                       lost=jax.tree_util.tree_map(lambda a: a.reshape(per_ray), out.lost))

@@ -254,7 +254,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
     step_fn = _train_step(run.train, render)  # compiles once per capacities the scene carries
 
     def fit(scene, epoch):  # the packing budget for the next epoch's scene, probed on its rays
-        probe = sample_batch(sampler, pool, jax.random.fold_in(k_rounds, 10_000 + epoch)).rays
+        probe = sample_batch(sampler, pool, jax.random.fold_in(k_rounds, 10_000 + epoch), render.pixel_samples).rays
         return scene.fitted(render, probe)
 
     scene = fit(scene, len(history))
@@ -270,7 +270,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
             step0 = (epoch - 1) * run.steps_per_epoch
             with count_compiles() as compiles:  # the step's (its batches' sampler compiled in fit())
                 for i in range(step0, step0 + run.steps_per_epoch):
-                    batch = sample_batch(sampler, pool, jax.random.fold_in(k_batch, i))
+                    batch = sample_batch(sampler, pool, jax.random.fold_in(k_batch, i), render.pixel_samples)
                     state, m = step_fn(state, scene, batch)
                     metrics.append(m)
                     if (i + 1) % INFLIGHT_STEPS == 0:

@@ -14,7 +14,8 @@ band pixels and ``batch_size - num_band`` foreground pixels (uniform, with repla
 batch shape is static and the training step never recompiles. It is a pure function of
 ``(cfg, pool, key)``: the same key gives the same batch. Rays are generated on the device from the
 cameras stored in the pool (pixel centres at ``i + 0.5``, OpenGL convention, as
-:func:`~ne_jax.data.rays.pixel_rays`).
+:func:`~ne_jax.data.rays.pixel_rays`; or each pixel's ``n x n`` grid of rays, whose mean colour the
+training step compares with the pixel, for a model with ``RenderConfig.pixel_samples = n``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from flax import struct
 from scipy import ndimage
 
 from ne_jax.data.nerf_synthetic import SceneSplit, composite, parse_background
-from ne_jax.data.rays import Rays, rays_through_pixels
+from ne_jax.data.rays import Rays, rays_through_pixels, subpixel_offsets
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,7 +146,9 @@ class Batch:
     """A training batch: ``rays`` (``[B]``; ``target`` ``[B, 4]``: the RGB composited on the
     background, alpha 1, as :func:`~ne_jax.data.nerf_synthetic.split_rays` with a background),
     ``pixel`` ``[B]`` int32 flat pixel indices, ``in_band`` ``[B]`` bool (drawn from the band),
-    ``background`` ``[3]`` the colour to render behind the scene."""
+    ``background`` ``[3]`` the colour to render behind the scene. With ``n x n`` rays per pixel
+    (:func:`sample_batch`'s ``pixel_samples``) each pixel's ``n * n`` rays are consecutive and share
+    its index and target."""
 
     rays: Rays
     pixel: jax.Array
@@ -153,29 +156,47 @@ class Batch:
     background: jax.Array
 
 
-def pixel_index_rays(pool: RayPool, pixel: jax.Array, near: float, far: float) -> Rays:
-    """Rays through flat pixel indices ``pixel`` ``[B]`` (pixel centres), unit directions."""
+def pixel_index_rays(pool: RayPool, pixel: jax.Array, near: float, far: float, pixel_samples: int = 1) -> Rays:
+    """Rays through flat pixel indices ``pixel`` ``[P]``, unit directions: the pixel centres, or
+    each pixel's ``n x n`` grid (``n = pixel_samples``, :func:`~ne_jax.data.rays.subpixel_offsets`;
+    ``[P * n * n]`` rays, each pixel's consecutive)."""
     view, rest = jnp.divmod(pixel, pool.width * pool.height)
     row, col = jnp.divmod(rest, pool.width)
-    xy = jnp.stack([col, row], axis=-1).astype(pool.c2w.dtype) + 0.5
+    corner = jnp.stack([col, row], axis=-1).astype(pool.c2w.dtype)
+    xy = (corner[:, None, :] + jnp.asarray(subpixel_offsets(pixel_samples), corner.dtype)).reshape(-1, 2)
+    view = jnp.repeat(view, pixel_samples ** 2)
     fx, fy, cx, cy = (pool.intrinsics[i] for i in range(4))
     return rays_through_pixels(pool.c2w[view], fx, fy, cx, cy, xy, near, far)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def sample_batch(cfg: SamplerConfig, pool: RayPool, key: jax.Array) -> Batch:
+@functools.partial(jax.jit, static_argnums=(0, 3))
+def sample_batch(cfg: SamplerConfig, pool: RayPool, key: jax.Array, pixel_samples: int = 1) -> Batch:
     """``cfg.batch_size`` rays: ``pool.num_band`` from the band, the rest from the foreground,
-    uniform with replacement. Deterministic for ``key``; the shape depends only on ``cfg``."""
+    uniform with replacement. With ``pixel_samples = n > 1`` the batch holds ``batch_size / n**2``
+    pixels (band pixels in the same share), ``n x n`` rays each. Deterministic for ``key``; the
+    shape depends only on ``cfg`` and ``n``.
+
+    Raises:
+        ValueError: when ``batch_size`` is not a multiple of ``n**2``.
+    """
+    per_pixel = pixel_samples ** 2
+    if cfg.batch_size % per_pixel:
+        raise ValueError(f"sample_batch: batch_size {cfg.batch_size} is not a multiple of the {per_pixel} rays "
+                         f"of a pixel (pixel_samples={pixel_samples})")
     k_fg, k_band = jax.random.split(key)
-    num_fg = cfg.batch_size - pool.num_band
+    num_pixels = cfg.batch_size // per_pixel
+    num_band = min(round(pool.num_band / per_pixel), num_pixels - 1)
+    num_fg = num_pixels - num_band
     i_fg = jax.random.randint(k_fg, (num_fg,), 0, pool.fg_index.shape[0])
-    i_band = jax.random.randint(k_band, (pool.num_band,), 0, pool.band_index.shape[0])
+    i_band = jax.random.randint(k_band, (num_band,), 0, pool.band_index.shape[0])
     pixel = jnp.concatenate([pool.fg_index[i_fg], pool.band_index[i_band]])
     target = jnp.concatenate([pool.fg_target[i_fg], pool.band_target[i_band]])
-    in_band = jnp.arange(cfg.batch_size) >= num_fg
+    in_band = jnp.arange(num_pixels) >= num_fg
     target = jnp.concatenate([target, jnp.ones_like(target[:, :1])], axis=-1)
-    rays = pixel_index_rays(pool, pixel, cfg.near, cfg.far).replace(target=target)
-    return Batch(rays=rays, pixel=pixel, in_band=in_band, background=pool.background)
+    rays = pixel_index_rays(pool, pixel, cfg.near, cfg.far, pixel_samples)
+    each = lambda a: jnp.repeat(a, per_pixel, axis=0)  # noqa: E731
+    return Batch(rays=rays.replace(target=each(target)), pixel=each(pixel), in_band=each(in_band),
+                 background=pool.background)
 
 
 __all__ = ["Batch", "RayPool", "SamplerConfig", "band_mask", "build_pool", "pixel_index_rays", "sample_batch"]

@@ -61,7 +61,9 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | Non
         state: :class:`~ne_jax.train.state.TrainState`.
         scene: :class:`~ne_jax.render.renderer.PointScene` with the fixed arrays (positions,
             normals, ISTs, ``alive``) and the tree; its ``feature``/``conf_logit`` are ignored.
-        batch: :class:`~ne_jax.train.sampler.Batch` (``[B]`` rays, targets ``[B, 4]``).
+        batch: :class:`~ne_jax.train.sampler.Batch` (``[B]`` rays, targets ``[B, 4]``; with
+            ``render_cfg.pixel_samples = n > 1``, ``B / n**2`` pixels of ``n * n`` consecutive rays,
+            and the photometric loss compares each pixel's mean colour with its target).
 
     Metrics (scalars): ``loss/<term>`` (unweighted), ``loss/total`` (weighted), ``finite/<term>``,
     ``finite/grad``, ``finite/update``, ``ok`` (the step was applied), ``psnr`` (of the batch MSE), ``lr`` (the rate
@@ -75,7 +77,7 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | Non
     steps: dict = {}  # one step per mesh the batch sizes split over (one, for a fixed batch size)
 
     def step_on_even_mesh(state: TrainState, scene: PointScene, batch: Batch):
-        sub = even_mesh(batch.rays.num_rays, mesh)
+        sub = even_mesh(batch.rays.num_rays // render_cfg.pixel_samples ** 2, mesh)  # whole pixels per device
         if sub not in steps:
             steps[sub] = _make_train_step(cfg, render_cfg, sub)
         return steps[sub](state, scene, batch)
@@ -89,6 +91,10 @@ def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
     optimizer = cfg.optimizer()
     schedule = cfg.schedule()
     stochastic = render_cfg.quadrature.rule == "stochastic"
+    per_pixel = render_cfg.pixel_samples ** 2
+
+    def pixel_mean(x):  # [R, ...] -> [R / per_pixel, ...]: each pixel's mean over its consecutive rays
+        return x.reshape((-1, per_pixel) + x.shape[1:]).mean(1) if per_pixel > 1 else x
 
     def local(trainables, scene: PointScene, k_render, rays, background, reduce: bool):
         """Loss terms, their finiteness, gradients and batch statistics of ``rays`` (one device's
@@ -111,7 +117,7 @@ def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
             out, valid, pts = fixed
             aux = SegmentAux(valid=valid, **{k: v for k, v in inter.items() if k not in ("rgb", "conf_logit", "ist")})
             pts = pts.replace(conf_logit=inter["conf_logit"], **({"ist": inter["ist"]} if "ist" in inter else {}))
-            return loss_terms(cfg.loss, out.replace(rgb=inter["rgb"]), aux, target, pts)
+            return loss_terms(cfg.loss, out.replace(rgb=pixel_mean(inter["rgb"])), aux, pixel_mean(target), pts)
 
         inter, render_vjp, fixed = jax.vjp(render_part, trainables, has_aux=True)
         terms, loss_vjp = jax.vjp(lambda x: loss_part(x, fixed), inter)
@@ -125,7 +131,8 @@ def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
         stage_check(render_cfg.checks, "backward", grad=grads)
         term_ok = {k: jnp.isfinite(v) & _all_finite(inter_grads[k]) for k, v in terms.items()}
         out = fixed[0]
-        mse = terms["photometric"] if "photometric" in terms else jnp.mean(jnp.square(out.rgb - target))
+        mse = (terms["photometric"] if "photometric" in terms
+               else jnp.mean(jnp.square(pixel_mean(out.rgb) - pixel_mean(target))))
         stats = {"mse": mse, "opacity": jnp.mean(out.opacity)}
         lost = out.lost
         counts = {f"lost/{k}": jnp.sum(getattr(lost, k)) for k in ("frontier", "slots", "packing", "emitted")}

@@ -92,3 +92,15 @@ def test_downscaled_camera_looks_through_block_centers(tmp_path):
     corners = np.array([[2 * i + 1, 2 * j + 1] for j in range(3) for i in range(4)], np.float32)
     big = pixel_rays(full.camera(0), corners, 1.0, 5.0)
     np.testing.assert_allclose(small.direction, big.direction, atol=1e-6)
+
+
+def test_subpixel_grid_is_centred_in_each_pixel():
+    from ne_jax.data.rays import pixel_centers, subpixel_offsets
+
+    np.testing.assert_array_equal(subpixel_offsets(1), [[0.5, 0.5]])
+    np.testing.assert_array_equal(subpixel_offsets(2), [[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]])
+    grid = pixel_centers(W, H, 3).reshape(H * W, 9, 2)
+    np.testing.assert_allclose(grid.mean(1), pixel_centers(W, H), atol=1e-6)  # each pixel's 9 rays, consecutive
+    assert (np.floor(grid) == np.floor(pixel_centers(W, H))[:, None]).all()  # inside their own pixel
+    with pytest.raises(ValueError, match="n >= 1"):
+        subpixel_offsets(0)

@@ -217,3 +217,21 @@ def test_chunked_render_equals_one_call(setup):
     assert 0 < int((out.num_segments > 0).sum()) < rays.num_rays
     for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(ref)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+
+
+def test_pixel_grid_image_is_the_mean_of_a_finer_image(setup):
+    """``pixel_samples=2``: each pixel is the mean of the 2 x 2 pixels of the same camera at twice the
+    resolution (the same rays); segments are summed and what was lost stays per ray."""
+    cfg, params, scene, camera, _ = setup
+    out = render_image(cfg.replace(pixel_samples=2), params, scene, camera, BG, cameras.NEAR, cameras.FAR)
+    fine_camera = camera.replace(fx=2 * camera.fx, fy=2 * camera.fy, cx=2 * camera.cx, cy=2 * camera.cy,
+                                 width=2 * RES, height=2 * RES)
+    fine = render_image(cfg, params, scene, fine_camera, BG, cameras.NEAR, cameras.FAR)
+    blocks = lambda a, reduce: reduce(np.asarray(a, np.float64).reshape(RES, 2, RES, 2, *a.shape[2:]), axis=(1, 3))  # noqa: E731
+    for name in ("rgb", "opacity", "depth", "normal"):
+        np.testing.assert_allclose(np.asarray(getattr(out, name)), blocks(getattr(fine, name), np.mean), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(out.num_segments), blocks(fine.num_segments, np.sum))
+    assert out.rgb.shape == (RES, RES, 3) and out.lost.emitted.shape == (RES, RES, 4)
+    assert int(out.lost.emitted.sum()) == int(fine.lost.emitted.sum()) > 0
+    with pytest.raises(ValueError, match="pixel_samples"):
+        RenderConfig(pixel_samples=0)

@@ -127,6 +127,29 @@ def test_sampler_band_fraction_zero_and_empty_masks():
         build_pool(SamplerConfig(batch_size=16), empty, "black")
 
 
+def test_sampler_pixel_grid_groups_each_pixels_rays(world):
+    """With 2 x 2 rays per pixel: a quarter of the pixels, each pixel's 4 rays consecutive with its
+    index and target, through the 4 grid positions of that pixel; a batch that is not a multiple of 4
+    rays is refused."""
+    split, pool = world["split"], world["pool"]
+    batch = sample_batch(SCFG, pool, jax.random.key(3), 2)
+    pix = np.asarray(batch.pixel).reshape(-1, 4)
+    assert pix.shape == (SCFG.batch_size // 4, 4) and (pix == pix[:, :1]).all()
+    target = np.asarray(batch.rays.target).reshape(-1, 4, 4)
+    assert (target == target[:, :1]).all()
+    assert np.asarray(batch.in_band).reshape(-1, 4)[:, 0].sum() == round(SCFG.band_fraction * SCFG.batch_size / 4)
+    hw = split.width * split.height
+    for p in (0, SCFG.batch_size // 4 - 1):
+        view, rest = divmod(int(pix[p, 0]), hw)
+        row, col = divmod(rest, split.width)
+        xy = jnp.asarray([[col + a, row + b] for b in (0.25, 0.75) for a in (0.25, 0.75)])
+        ref = pixel_rays(split.camera(view), xy, SCFG.near, SCFG.far)
+        np.testing.assert_allclose(np.asarray(batch.rays.direction[4 * p:4 * p + 4]), np.asarray(ref.direction),
+                                   atol=1e-5)
+    with pytest.raises(ValueError, match="not a multiple of the 9 rays"):
+        sample_batch(SCFG, pool, jax.random.key(3), 3)
+
+
 # ---------------------------------------------------------------- render with aux
 
 
@@ -179,6 +202,24 @@ def test_training_reduces_photometric_loss_without_recompiling(world):
     # 0.0729 -> 0.0230 (32%); per-batch loss, mean of the first 3 0.074 -> mean of the last 5 0.030 (41%)
     assert mse1 < 0.5 * mse0, (mse0, mse1)
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:3]), losses
+
+
+def test_pixel_grid_step_scores_each_pixels_mean_colour(world):
+    """With ``pixel_samples=2`` the photometric term is the mean over pixels of (mean of a pixel's 4
+    rays' colours - its target)^2, not the mean over rays, and the step's gradients are finite."""
+    cfg = RCFG.replace(pixel_samples=2)
+    pool, scene = world["pool"], world["scene"]
+    state = init_train_state(TCFG, cfg, world["points"], jax.random.key(1))
+    batch = sample_batch(SCFG, pool, jax.random.key(11), 2)
+    out = _render(cfg, state.params, state.scene(scene), batch.rays, batch.background)
+    rgb, target = np.asarray(out.rgb, np.float64), np.asarray(batch.rays.target[:, :3], np.float64)
+    per_pixel = np.mean(np.square(rgb.reshape(-1, 4, 3).mean(1) - target[::4]))
+    per_ray = np.mean(np.square(rgb - target))
+    assert per_ray > 1.05 * per_pixel  # the rays of an edge pixel differ: the two rules disagree here
+    new, m = make_train_step(TCFG, cfg)(state, scene, batch)
+    assert bool(m["ok"]) and int(new.step) == 1
+    np.testing.assert_allclose(float(m["loss/photometric"]), per_pixel, rtol=1e-4)
+    assert np.isfinite(float(m["grad_norm"])) and float(m["grad_norm"]) > 0
 
 
 def _nan_target_point(world, state, batch):
