@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import RESULTS, command, write_results
+from experiments.common import RESULTS, command, commit, write_results
 
 
 def ground_truth_floor(scene_dir: Path, split, views: list[int], background) -> dict | None:
@@ -111,11 +111,11 @@ def main(argv=None) -> None:
         print(f"{name}: floor {floor}; " + "; ".join(f"n={r['pixel_samples']}: {r['psnr']:.2f} dB, "
                                                     f"{r['seconds_per_image']:.2f} s" for r in rows), flush=True)
     res = {"what": "one ray per pixel against a grid: the ground truth's floor and trained models zero-shot",
-           "command": command("pixel_grid", argv), "views": args.views, "runs": runs,
+           "command": command("pixel_grid", argv), "commit": commit(), "views": args.views, "runs": runs,
            "seconds": round(time.perf_counter() - t0, 1)}
-    md = (f"Test views {args.views}; `{res['command']}`. *Floor*: the ray-cast ground truth rendered again "
-          "with one ray per pixel centre, against the stored ground truth. Rows: the model rendered with n x n "
-          "rays per pixel (its own n in bold).\n\n"
+    md = (f"Test views {args.views}; commit {res['commit']}; `{res['command']}`. *Floor*: the ray-cast ground "
+          "truth rendered again with one ray per pixel centre, against the stored ground truth. Rows: the model "
+          "rendered with n x n rays per pixel (its own n in bold).\n\n"
           "| model | config key | floor PSNR (1 ray) | rays per pixel | PSNR | silhouette share of the squared error "
           "| s / image |\n|---|---|---:|---:|---:|---:|---:|\n")
     for run in runs:

@@ -86,10 +86,6 @@ class RunConfig:
         if int(self.epochs) < 1 or int(self.steps_per_epoch) < 1:
             raise ValueError(f"RunConfig: expected epochs >= 1 and steps_per_epoch >= 1, found "
                              f"{self.epochs} and {self.steps_per_epoch}")
-        per_pixel = self.render.pixel_samples ** 2
-        if self.sampler.batch_size % per_pixel:
-            raise ValueError(f"RunConfig: sampler.batch_size {self.sampler.batch_size} is not a multiple of the "
-                             f"{per_pixel} rays of a pixel (render.pixel_samples={self.render.pixel_samples})")
         a, b = self.round_epochs
         if not 1 <= a <= b + 1:
             raise ValueError("RunConfig.round_epochs: expected (first, last) with 1 <= first <= last + 1, "
