@@ -7,8 +7,9 @@ The presets differ in what a step renders (K, candidates, levels, samples per se
 depth and width) and in how many rays a batch holds, and a full run of the ``paper`` preset (80,000
 steps of 4,096 rays) is far beyond a CPU. This measures every preset on the same cloud, a trained
 run's final points and colour model, so the costs compare and a preset's training time can be
-projected on a machine (a GPU) where it was never trained. Per preset, and for three variants:
-``default`` walked in one pass (the reference for the two-pass walk), ``default`` with the paper's
+projected on a machine (a GPU) where it was never trained. Per preset, and for five variants:
+``default`` walked in one pass (the reference for the two-pass walk), ``default`` with the tree's
+default box margins and with 2 x 2 rays per pixel, ``default`` with the paper's
 per-sample settings (the training study's most accurate candidate) and ``paper`` with 32 segment
 slots a ray instead of 64 (its capacity before this benchmark showed what it loses):
 
@@ -49,9 +50,11 @@ REFERENCE = "default"
 
 
 def settings(quick: bool) -> list[tuple[str, object]]:
-    """``(label, RunConfig)``: every preset; ``default`` walked in one 64-wide pass and with the paper's
-    sampling (also walked in one pass, as it was measured); ``paper`` with 32 segment slots a ray (its
-    capacity until it was measured) instead of 64."""
+    """``(label, RunConfig)``: every preset; ``default`` walked in one 64-wide pass, with the tree's
+    default box margins (``margin_factor`` 1), with 2 x 2 rays per pixel (a batch of the same rays,
+    a quarter of the pixels; an image of 4x the rays) and with the paper's sampling (also walked in
+    one pass, as it was measured); ``paper`` with 32 segment slots a ray (its capacity until it was
+    measured) instead of 64."""
     from ne_jax.render.renderer import RenderConfig
     from ne_jax.train.run import PRESETS, RunConfig
 
@@ -59,7 +62,10 @@ def settings(quick: bool) -> list[tuple[str, object]]:
     d = RunConfig.default()
     one_pass = d.capacities.replace(first_pass_frontier=None)
     paper_sampling = RenderConfig()  # the paper's per-sample settings on the default preset's tree
+    margin1 = d.render.kdtree.replace(margin_factor=1.0)
     out[2:2] = [("default, one pass", d.replace(capacities=one_pass)),
+                ("default, margin 1", d.replace(render=d.render.replace(kdtree=margin1))),
+                ("default, 2x2 rays per pixel", d.replace(render=d.render.replace(pixel_samples=2))),
                 ("default, paper sampling", d.replace(render=d.render.replace(kdtree=paper_sampling.kdtree,
                                                                               quadrature=paper_sampling.quadrature),
                                                       capacities=one_pass))]
@@ -80,7 +86,8 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     key = jax.random.PRNGKey(0)
     points = model.state.point_state(model.scene.points)
     state = init_train_state(run.train, run.render, points, key).replace(params=model.state.params)
-    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i)) for i in range(steps + 1)]
+    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i), run.render.pixel_samples)
+               for i in range(steps + 1)]
     scene = scene.fitted(run.render, batches[0].rays)  # the packing budget, as training fits it
     step = make_train_step(run.train, run.render)
     _, per_step, first_s, lost = timed_steps(step, state, scene, batches)
