@@ -105,7 +105,8 @@ class RenderConfig:
     (:func:`~ne_jax.data.rays.subpixel_offsets`), as the benchmark's ground truth is made (ray caster:
     a 2 x 2 or 3 x 3 grid; path tracer: random positions). 1: the pixel-centre ray. Rendering an image
     costs ``n**2`` times the rays that meet the scene; training keeps the batch's rays, so a batch
-    holds ``batch_size / n**2`` pixels (the photometric loss compares each pixel's mean colour)."""
+    holds ``batch_size / n**2`` pixels (the photometric loss compares each pixel's mean colour).
+    Naive Plotting splats points per pixel and ignores it."""
 
     checks: bool = False
     """Runtime finiteness checks (:mod:`ne_jax.checks`): the first NaN / Inf raises
