@@ -547,8 +547,9 @@ def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Cam
     rays = camera_rays(camera, near, far, cfg.pixel_samples)
     out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image", mesh=mesh)
     h, w = camera.height, camera.width
+    if n == 1:  # one ray a pixel: the rays are the image
+        return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out)
     pixels = lambda a, reduce: reduce(a.reshape((h, w, n) + a.shape[1:]), axis=2)  # noqa: E731
     means = {f: pixels(getattr(out, f), jnp.mean) for f in ("rgb", "opacity", "depth", "normal")}
-    per_ray = (h, w) + ((n,) if n > 1 else ())
     return out.replace(**means, num_segments=pixels(out.num_segments, jnp.sum),
-                       lost=jax.tree_util.tree_map(lambda a: a.reshape(per_ray), out.lost))
+                       lost=jax.tree_util.tree_map(lambda a: a.reshape(h, w, n), out.lost))
