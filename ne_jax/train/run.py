@@ -126,11 +126,14 @@ class RunConfig:
 
     @classmethod
     def tiny(cls, **changes) -> RunConfig:
-        """The demo: 64 px tiny benchmark scenes, about 2.5 minutes per model on one CPU core. K = 16
+        """The demo: 64 px tiny benchmark scenes, a few minutes per model on one CPU core. K = 16
         of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
-        over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3)."""
+        over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3). A pixel is the mean
+        of 2 x 2 rays, as the benchmark's ground truth is area-averaged; the rays per training batch
+        stay 1024 (docs/rendering.md, "Pixels: one ray or a grid")."""
         render = RenderConfig(kdtree=KDTreeConfig(candidate_min=16, knn_k=16, num_render_levels=2),
-                              quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)), chunk=1024)
+                              quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)), chunk=1024,
+                              pixel_samples=2)
         base = cls(name="tiny", render=render, capacities=Capacities(frontier=32, max_segments=32),
                    sampler=SamplerConfig(batch_size=1024),
                    train=TrainConfig(lr=5e-3), rounds=RoundConfig(grow_rays=4096),
