@@ -545,7 +545,9 @@ def render_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Cam
     ``num_segments`` their sum, and ``lost`` stays per ray (``[H, W, n * n]``)."""
     n = cfg.pixel_samples ** 2
     rays = camera_rays(camera, near, far, cfg.pixel_samples)
-    out = render_chunked(cfg, params, scene, rays, background, progress, desc="render image", mesh=mesh)
+    # The rays render alike at any grid: one compiled chunk serves every pixel_samples.
+    out = render_chunked(cfg.replace(pixel_samples=1), params, scene, rays, background, progress, desc="render image",
+                         mesh=mesh)
     h, w = camera.height, camera.width
     if n == 1:  # one ray a pixel: the rays are the image
         return jax.tree_util.tree_map(lambda a: a.reshape((h, w) + a.shape[1:]), out)

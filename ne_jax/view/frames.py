@@ -71,11 +71,14 @@ def look_at(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return matrix_to_quat(np.stack([right, np.cross(fwd, right), fwd], 1))
 
 
-def render_model(model, camera: Camera) -> RenderOut:
+def render_model(model, camera: Camera, pixel_samples: int | None = None) -> RenderOut:
     """Render ``model`` (a :class:`~ne_jax.train.model.TrainedModel`) from ``camera`` as the evaluation
-    does (a stochastic quadrature rule is rendered un-jittered), fields as images ``[H, W, ...]``."""
+    does (a stochastic quadrature rule is rendered un-jittered), fields as images ``[H, W, ...]``.
+    ``pixel_samples``: rays per pixel side instead of the model's own (e.g. 1 for a quick preview)."""
     cfg = model.run.render
     cfg = cfg.replace(quadrature=at_test_time(cfg.quadrature))
+    if pixel_samples is not None:
+        cfg = cfg.replace(pixel_samples=int(pixel_samples))
     return render_image(cfg, model.params, model.scene, camera, parse_background(model.background), model.near,
                         model.far, progress=False)
 
@@ -102,11 +105,13 @@ def to_image(out: RenderOut, mode: str, near: float, far: float, background=(1.0
     return np.clip(np.round(np.nan_to_num(img) * 255.0), 0, 255).astype(np.uint8)
 
 
-def render_frame(model, camera: Camera, mode: str = "rgb") -> tuple[np.ndarray, float]:
-    """``(image [H, W, 3] uint8, seconds)``: one frame of ``model`` from ``camera`` in ``mode``, and
-    the wall time of the render (device work included)."""
+def render_frame(model, camera: Camera, mode: str = "rgb",
+                 pixel_samples: int | None = None) -> tuple[np.ndarray, float]:
+    """``(image [H, W, 3] uint8, seconds)``: one frame of ``model`` from ``camera`` in ``mode``
+    (``pixel_samples``: see :func:`render_model`), and the wall time of the render (device work
+    included)."""
     t0 = time.perf_counter()
-    out = render_model(model, camera)
+    out = render_model(model, camera, pixel_samples)
     bg = np.asarray(parse_background(model.background), np.float32)
     img = to_image(out, mode, model.near, model.far, bg)
     return img, time.perf_counter() - t0

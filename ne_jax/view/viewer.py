@@ -146,14 +146,16 @@ class Viewer:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def render(self, wxyz, position, fov_y: float, width: int, height: int, mode: str = "rgb"):
+    def render(self, wxyz, position, fov_y: float, width: int, height: int, mode: str = "rgb",
+               preview: bool = False):
         """``(image [H, W, 3] uint8, seconds)``: the current (edited) model from a browser camera
-        (OpenCV ``wxyz``/``position``, vertical ``fov_y`` radians)."""
+        (OpenCV ``wxyz``/``position``, vertical ``fov_y`` radians). A ``preview`` shoots one ray per
+        pixel whatever grid the model was trained with."""
         camera = camera_from_viewer(wxyz, position, fov_y, width, height)
         with self._lock:
             model = self._edited
         with self._render_lock:
-            return render_frame(model, camera, mode)
+            return render_frame(model, camera, mode, 1 if preview else None)
 
     @property
     def edited_model(self) -> TrainedModel:
@@ -564,7 +566,7 @@ class Viewer:
             if moving and self.preview_factor > 1:
                 w, h = max(1, w // self.preview_factor), max(1, h // self.preview_factor)
             try:
-                img, secs = self.render(cam.wxyz, cam.position, cam.fov, w, h, self._gui_mode.value)
+                img, secs = self.render(cam.wxyz, cam.position, cam.fov, w, h, self._gui_mode.value, preview=moving)
                 client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
             except Exception:
                 if self._stopped:

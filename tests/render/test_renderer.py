@@ -8,6 +8,7 @@ import pytest
 
 from ne_jax.benchmark import raycaster
 from ne_jax.benchmark import scenes as S
+from ne_jax.compiles import count_compiles
 from ne_jax.data import cameras
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.capacity import Capacities
@@ -223,10 +224,12 @@ def test_pixel_grid_image_is_the_mean_of_a_finer_image(setup):
     """``pixel_samples=2``: each pixel is the mean of the 2 x 2 pixels of the same camera at twice the
     resolution (the same rays); segments are summed and what was lost stays per ray."""
     cfg, params, scene, camera, _ = setup
-    out = render_image(cfg.replace(pixel_samples=2), params, scene, camera, BG, cameras.NEAR, cameras.FAR)
     fine_camera = camera.replace(fx=2 * camera.fx, fy=2 * camera.fy, cx=2 * camera.cx, cy=2 * camera.cy,
                                  width=2 * RES, height=2 * RES)
     fine = render_image(cfg, params, scene, fine_camera, BG, cameras.NEAR, cameras.FAR)
+    with count_compiles() as compiled:  # the same rays in the same chunks: the grid compiles no render
+        out = render_image(cfg.replace(pixel_samples=2), params, scene, camera, BG, cameras.NEAR, cameras.FAR)
+    assert "jit(_render_chunk)" not in compiled.names, compiled.names
     blocks = lambda a, reduce: reduce(np.asarray(a, np.float64).reshape(RES, 2, RES, 2, *a.shape[2:]), axis=(1, 3))  # noqa: E731
     for name in ("rgb", "opacity", "depth", "normal"):
         np.testing.assert_allclose(np.asarray(getattr(out, name)), blocks(getattr(fine, name), np.mean), atol=1e-5)

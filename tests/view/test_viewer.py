@@ -4,6 +4,7 @@ undo, benchmark edits, save) give the edited model that ``ne-jax edit`` makes fr
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import urllib.request
 
@@ -48,6 +49,26 @@ def test_serves_and_renders_a_camera(viewer, tiny_run):
     # a camera moved elsewhere renders something else
     other, _ = viewer.render(look_at(-pos, (0, 0, 0)), -pos, np.deg2rad(40), 24, 16)
     assert not np.array_equal(other, frames["rgb"])
+
+
+def test_preview_frames_shoot_one_ray_per_pixel(tiny_run):
+    """A model trained with a pixel grid renders its full frames on that grid and its previews (the
+    frames of a moving camera) with one ray per pixel."""
+    base = load_trained(tiny_run)
+    run = base.run.replace(render=base.run.render.replace(pixel_samples=2))
+    model = dataclasses.replace(base, run=run)
+    v = Viewer(model, port=0, max_side=32, warm_up=False)
+    try:
+        pos = np.asarray(load_split(base.scene_dir, "train").c2w[0], np.float64)[:3, 3]
+        wxyz = look_at(pos, (0, 0, 0))
+        cam = camera_from_viewer(wxyz, pos, np.deg2rad(40), 24, 16)
+        full, _ = v.render(wxyz, pos, np.deg2rad(40), 24, 16)
+        preview, _ = v.render(wxyz, pos, np.deg2rad(40), 24, 16, preview=True)
+    finally:
+        v.stop()
+    np.testing.assert_array_equal(full, render_frame(model, cam)[0])
+    np.testing.assert_array_equal(preview, render_frame(base, cam)[0])
+    assert not np.array_equal(full, preview)
 
 
 def test_port_in_use_and_missing_run_are_refused(viewer, tmp_path):
