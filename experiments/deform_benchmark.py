@@ -5,6 +5,7 @@ zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
     python -m experiments.deform_benchmark --preset tiny --runs runs/deform --variants all
     python -m experiments.deform_benchmark --scenes glossy --edits bend --no-finetune  # a quick look
     python -m experiments.deform_benchmark --preset tiny --root BENCH/tiny_pt --runs runs/deform_pt  # path-traced
+    python -m experiments.deform_benchmark --preset tiny --runs runs/deform1 --set render.pixel_samples=1  # a field
 
 For each scene: the full model and every variant that needs its own model are trained with the
 preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``: a finished run is reused), then
@@ -13,8 +14,11 @@ ground truth) and :func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` 
 scene's training views (scored again). Writes ``experiments/results/deform_benchmark_<preset>.json``
 and ``.md`` after every (scene, edit), and a figure grid ``deform_benchmark_<preset>.png`` (test view
 0: ground truth, then each variant zero-shot); on a path-traced ``--root`` (its ``scene.json`` names
-the renderer) the name is ``deform_benchmark_<preset>_pt``. Every record and its figure image are cached in
-``<runs>/<scene>/records/<edit>/``: a re-run, or one with more variants, measures only what is missing.
+the renderer) the name is ``deform_benchmark_<preset>_pt``. ``--set FIELD.PATH=VALUE`` changes a field of
+the preset (as ``ne-jax train --set`` does; recorded in the results). Every record and its figure image are
+cached in ``<runs>/<scene>/records/<config key>/<edit>/`` (the key of the preset with its ``--set``
+changes): a re-run, or one with more variants, measures only what is missing, and another config
+measures anew.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import io
 import json
 import os
 import platform
+import shlex
 import time
 import zlib
 from pathlib import Path
@@ -37,6 +42,7 @@ from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.generate import generate_benchmark, get_preset
 from ne_jax.benchmark.scenes import SCENES, get_scene
 from ne_jax.benchmark.variants import MAIN_VARIANTS, VARIANTS, get_variant, variant_run
+from ne_jax.config_json import config_key, config_set
 from ne_jax.data.nerf_synthetic import composite, load_split
 from ne_jax.data.png import write_image
 from ne_jax.edit.apply import EditConfig
@@ -78,7 +84,13 @@ def main(argv=None) -> None:
     parser.add_argument("--finetune-steps", type=int, default=None,
                         help="steps per fine-tuning epoch (default: the preset's)")
     parser.add_argument("--no-finetune", action="store_true")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD.PATH=VALUE",
+                        help="change a field of the preset's RunConfig (repeatable), e.g. render.pixel_samples=1")
     args = parser.parse_args(argv)
+    try:
+        full = config_set(get_run_preset(args.preset), *args.set)
+    except ValueError as e:
+        parser.error(f"--set: {e}")
     names = list(VARIANTS) if args.variants == ["all"] else args.variants
     variants = [get_variant(n) for n in names]
 
@@ -86,7 +98,7 @@ def main(argv=None) -> None:
     root = Path(args.root) if args.root else runs / "benchmark"
     if not (root / args.scenes[0] / "scene.json").is_file():
         generate_benchmark(root, get_preset(args.preset), args.scenes)
-    full = get_run_preset(args.preset)
+    key = config_key(full)
     complete = set(MAIN_VARIANTS) <= set(names) and set(args.scenes) == set(SCENES) and args.edits is None
     tag = ("_all" if len(names) > len(MAIN_VARIANTS) else "") if complete else "_partial"
     benchmark = args.preset + benchmark_suffix(root, args.scenes)  # <preset>_pt on the path-traced variant
@@ -105,7 +117,8 @@ def main(argv=None) -> None:
                 models[run.name] = trained_model(run, scene_dir, runs / scene / "models" / run.name, print)
             return models[run.name]
 
-        own = runs / scene / "records" / f"unedited-{full.name}.json"
+        records_dir = runs / scene / "records" / key
+        own = records_dir / f"unedited-{full.name}.json"
         if own.is_file():
             unedited = json.loads(own.read_text(encoding="utf-8"))
         else:  # the full model on its own test views: what a faithful zero-shot edit can reach
@@ -120,12 +133,12 @@ def main(argv=None) -> None:
             figure[(scene, edit, "ground truth")] = composite(split.images[:1], full.background)[0]
             finetuned = {}
             for v in variants:
-                cache = runs / scene / "records" / edit / f"{v.name}-{ft_tag}"
+                cache = records_dir / edit / f"{v.name}-{ft_tag}"
                 if cache.with_suffix(".json").is_file():  # measured by an earlier run with the same settings
                     rec = json.loads(cache.with_suffix(".json").read_text(encoding="utf-8"))
                     image = np.load(cache.with_suffix(".npy"))
                 else:
-                    zero = runs / scene / "records" / edit / f"{v.name}-zero"  # zero-shot, measured on its own
+                    zero = records_dir / edit / f"{v.name}-zero"  # zero-shot, measured on its own
                     rec, image = measure(args, runs, scene, edit, truth, v, model_of(v), finetuned, zero)
                     cache.parent.mkdir(parents=True, exist_ok=True)
                     atomic_write_bytes(cache.with_suffix(".npy"), _npy_bytes(image))
@@ -175,8 +188,8 @@ def measure(args, runs: Path, scene: str, edit: str, truth: Path, v, model: Trai
                 for f in dataclasses.fields(v.edit)
                 if (val := getattr(v.edit, f.name)) != getattr(EditConfig(), f.name))
             steps = args.finetune_steps or model.run.steps_per_epoch  # a folder per fine-tuning length
-            ft_dir = (runs / scene / "finetune" / edit
-                      / f"{model.run.name}-{'ist' if v.ist else 'noist'}{changed}-ft{args.finetune_epochs}x{steps}")
+            ft_dir = (runs / scene / "finetune" / edit / f"{model.run.name}-{config_key(model.run)}"
+                      f"-{'ist' if v.ist else 'noist'}{changed}-ft{args.finetune_epochs}x{steps}")
             finetuned[key] = finetune(edited, ft_dir, args.finetune_epochs, steps_per_epoch=args.finetune_steps,
                                       progress=False, log=lambda s: None)
         rec["finetune"] = score(finetuned[key], v, truth)[0]
@@ -196,13 +209,14 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
         "training": {"epochs": full.epochs, "steps_per_epoch": full.steps_per_epoch,
                      "batch_size": full.sampler.batch_size},
         "background": full.background, "seconds": round(seconds, 1), "records": records,
-        "unedited": unedited, "commit": commit(short=True),
+        "unedited": unedited, "commit": commit(short=True), "config_key": config_key(full), "set": list(args.set),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "command": "python -m experiments.deform_benchmark " + " ".join(
             f"--{k.replace('_', '-')}" + ("" if v is True else f" {' '.join(v) if isinstance(v, list) else v}")
             for k, v in vars(args).items()
-            if v not in (None, False) and k not in ("runs", "root")
+            if v not in (None, False, []) and k not in ("runs", "root", "set")
             and not (k == "finetune_epochs" and args.no_finetune))
+        + "".join(f" --set {shlex.quote(a)}" for a in args.set)
         + ("" if benchmark == args.preset else f" --root BENCH/{benchmark}") + " --runs DIR",
     }
     RESULTS.mkdir(exist_ok=True)
@@ -212,8 +226,9 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
     lines = [f"Deformation benchmark, preset `{args.preset}`{on} ({full.epochs} x {full.steps_per_epoch} "
              f"training steps; "
              f"fine-tuning {report['finetune_epochs']} epoch(s) x {report['finetune_steps_per_epoch']} steps), "
-             f"commit {report['commit']}. PSNR (dB) on the edited scenes' test views per edit, and the means of "
-             f"PSNR, SSIM and LPIPS (AlexNet; lower is better); background {full.background}. The last row is the "
+             f"commit {report['commit']}, config key {report['config_key']}. PSNR (dB) on the edited scenes' test "
+             f"views per edit, and the means of PSNR, SSIM and LPIPS (AlexNet; lower is better); background "
+             f"{full.background}. The last row is the "
              f"unedited model on its own test views (the reference a faithful edit can reach). "
              f"Re-run: `{report['command']}`.", ""]
 
