@@ -27,8 +27,6 @@ from ne_jax.train.model import load_trained
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-
-
 def measure(label: str, run_dir: Path, scene_dir: Path, view: int) -> tuple[dict, np.ndarray]:
     """Score one model's test views by region; ``(record, error-map row of test view`` ``view``)."""
     model = load_trained(run_dir)
