@@ -86,7 +86,7 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
     key = jax.random.PRNGKey(0)
     points = model.state.point_state(model.scene.points)
     state = init_train_state(run.train, run.render, points, key).replace(params=model.state.params)
-    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i), run.render.pixel_samples)
+    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i), run.train_pixel_samples)
                for i in range(steps + 1)]
     scene = scene.fitted(run.render, batches[0].rays)  # the packing budget, as training fits it
     step = make_train_step(run.train, run.render)

@@ -115,6 +115,13 @@ class RunConfig:
         return self.epochs * self.steps_per_epoch
 
     @property
+    def train_pixel_samples(self) -> int:
+        """Rays per pixel side of the training batches: ``sampler.pixel_samples``, else the render
+        config's (images are rendered on ``render.pixel_samples``)."""
+        own = self.sampler.pixel_samples
+        return int(self.render.pixel_samples if own is None else own)
+
+    @property
     def schedule_spans_run(self) -> bool:
         """Whether the learning-rate schedule decays over exactly the run's :attr:`total_steps`."""
         return int(self.train.total_steps) == self.total_steps

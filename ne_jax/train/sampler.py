@@ -29,6 +29,7 @@ import numpy as np
 from flax import struct
 from scipy import ndimage
 
+from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.data.nerf_synthetic import SceneSplit, composite, parse_background
 from ne_jax.data.rays import Rays, rays_through_pixels, subpixel_offsets
 
@@ -48,8 +49,15 @@ class SamplerConfig:
     """Ray start distance (the benchmark's ``scene.json`` ``near``)."""
     far: float = 6.0
     """Ray end distance (the benchmark's ``scene.json`` ``far``)."""
+    pixel_samples: int | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
+    """Rays per pixel side of the training batches; ``None``: the render config's ``pixel_samples``
+    (:attr:`~ne_jax.train.run.RunConfig.train_pixel_samples`). ``1`` with a render grid of 2 trains on
+    pixel centres and renders its images on the grid (the ``default`` preset)."""
 
     def __post_init__(self):
+        if self.pixel_samples is not None and int(self.pixel_samples) < 1:
+            raise ValueError(f"SamplerConfig.pixel_samples: expected None or rays per pixel side >= 1, "
+                             f"found {self.pixel_samples}")
         if int(self.batch_size) < 1:
             raise ValueError(f"SamplerConfig.batch_size: expected an integer >= 1, found {self.batch_size}")
         if int(self.band_width) < 0:

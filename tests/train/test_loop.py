@@ -161,6 +161,21 @@ def test_a_scene_with_one_view_trains(scene_dir, tmp_path):
     assert int(res.state.step) == 3 and np.isfinite(res.history[-1]["loss/total"])
 
 
+def test_training_batches_take_the_samplers_grid_and_images_the_renders(scene_dir, tmp_path):
+    """``sampler.pixel_samples = 1`` under a render grid of 2: the batches hold single rays (126 rays,
+    which no 2 x 2 grid divides, train), and the model trains as the one-ray config does."""
+    one = mini_run(epochs=1, round_epochs=(1, 0), sampler=mini_run().sampler.replace(batch_size=126))
+    grid = one.replace(render=one.render.replace(pixel_samples=2), sampler=one.sampler.replace(pixel_samples=1))
+    assert (grid.train_pixel_samples, one.train_pixel_samples) == (1, 1)
+    assert one.replace(render=one.render.replace(pixel_samples=2)).train_pixel_samples == 2
+    runs = [train(r, scene_dir, tmp_path / name, progress=False, log=lambda s: None)
+            for name, r in (("one", one), ("grid", grid))]
+    for a, b in zip(jax.tree_util.tree_leaves(runs[0].state.params), jax.tree_util.tree_leaves(runs[1].state.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="SamplerConfig.pixel_samples"):
+        one.sampler.replace(pixel_samples=0)
+
+
 def test_the_host_waits_for_every_inflight_steps_th_step(scene_dir, tmp_path, monkeypatch):
     """No more than INFLIGHT_STEPS steps are queued ahead of the host (the XLA:CPU deadlock of
     docs/devices.md needs about 32 per device): the loop waits for steps 8, 16, ... of each run."""
