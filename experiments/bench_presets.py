@@ -7,7 +7,7 @@ The presets differ in what a step renders (K, candidates, levels, samples per se
 depth and width) and in how many rays a batch holds, and a full run of the ``paper`` preset (80,000
 steps of 4,096 rays) is far beyond a CPU. This measures every preset on the same cloud, a trained
 run's final points and colour model, so the costs compare and a preset's training time can be
-projected on a machine (a GPU) where it was never trained. Per preset, and for five variants:
+projected on a machine (a GPU) where it was never trained. Per preset, and for six variants:
 ``default`` walked in one pass (the reference for the two-pass walk), ``default`` with the tree's
 default box margins, with its images at one ray per pixel and trained at 2 x 2 rays per pixel,
 ``default`` with the paper's
