@@ -81,8 +81,8 @@ def worker(steps: int, res: int, repeats: int) -> dict:
                      in_band=jnp.zeros(batch, bool), background=bg)
 
     batches = [make_batch(i) for i in range(steps)]
-    train_scene = scene.fitted(run.render, batches[0].rays)  # the packing budget, as training fits it
-    step = make_train_step(run.train, run.render)
+    train_scene = scene.fitted(run.train_render, batches[0].rays)  # the packing budget, as training fits it
+    step = make_train_step(run.train, run.train_render)
     cpu_wall = []
 
     def timed(fn):

@@ -74,10 +74,11 @@ def train_steps(model, scene_dir: Path, capacities, steps: int) -> tuple[float, 
     run = model.run
     budget = model.scene.capacities.segments_per_ray  # as the run ended
     scene = model.scene.replace(capacities=capacities.replace(segments_per_ray=budget))
-    step = make_train_step(run.train, run.render)
+    step = make_train_step(run.train, run.train_render)
     pool = build_pool(run.sampler, load_split(scene_dir, "train"), run.background)
     key = jax.random.PRNGKey(0)
-    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i)) for i in range(steps + 1)]
+    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i), run.train_render.pixel_samples)
+               for i in range(steps + 1)]
     state, per_step, _, lost = timed_steps(step, model.state, scene, batches)
     return per_step, lost.total, state.params
 

@@ -153,7 +153,8 @@ def whole_calls(quick: bool):
     run, scene, rrays, trays, _, _ = build_inputs(quick)
     new_api = _new_api()
     if new_api:  # the packing budget, as training fits it: on the training step's scene
-        cfg, train_scene = run.render, scene.fitted(run.render, trays)
+        cfg = getattr(run, "train_render", run.render)  # a reference from before the training grid has none
+        train_scene = scene.fitted(cfg, trays)
     else:  # a reference from before Capacities: on the render config
         from ne_jax.train.loop import fit_segment_budget
 
@@ -224,7 +225,7 @@ def profile_stages(repeats: int, quick: bool) -> dict:
         return j(*args)
 
     def one(kind, rays):  # the stages of one batch ("render" or "train")
-        cfg = run.render
+        cfg = run.train_render if kind == "train" else run.render
         sc = scene.fitted(cfg, trays) if kind == "train" else scene  # the packing budget, as training fits it
         cap = sc.capacities
         tc = cfg.kdtree

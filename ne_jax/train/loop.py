@@ -250,7 +250,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         _write_rest(run_dir, scene)
     else:
         scene = _scene_of(points, run.render, run_dir, saved_capacities(meta, run.capacities))
-    render = run.render.replace(pixel_samples=run.train_pixel_samples)  # the grid of the training batches
+    render = run.train_render  # the images' config on the training batches' grid
     step_fn = _train_step(run.train, render)  # compiles once per capacities the scene carries
 
     def fit(scene, epoch):  # the packing budget for the next epoch's scene, probed on its rays

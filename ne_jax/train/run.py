@@ -115,11 +115,11 @@ class RunConfig:
         return self.epochs * self.steps_per_epoch
 
     @property
-    def train_pixel_samples(self) -> int:
-        """Rays per pixel side of the training batches: ``sampler.pixel_samples``, else the render
-        config's (images are rendered on ``render.pixel_samples``)."""
+    def train_render(self) -> RenderConfig:
+        """The render config of the training step and its batches: :attr:`render` (what images are
+        rendered with) on the training batches' grid, ``sampler.pixel_samples`` where it is set."""
         own = self.sampler.pixel_samples
-        return int(self.render.pixel_samples if own is None else own)
+        return self.render if own is None else self.render.replace(pixel_samples=int(own))
 
     @property
     def schedule_spans_run(self) -> bool:

@@ -51,7 +51,7 @@ class SamplerConfig:
     """Ray end distance (the benchmark's ``scene.json`` ``far``)."""
     pixel_samples: int | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
     """Rays per pixel side of the training batches; ``None``: the render config's ``pixel_samples``
-    (:attr:`~ne_jax.train.run.RunConfig.train_pixel_samples`). ``1`` with a render grid of 2 trains on
+    (:attr:`~ne_jax.train.run.RunConfig.train_render`). ``1`` with a render grid of 2 trains on
     pixel centres and renders its images on the grid (the ``default`` preset)."""
 
     def __post_init__(self):
