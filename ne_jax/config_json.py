@@ -229,6 +229,11 @@ def config_set(cfg: Any, *assignments: str) -> Any:
     return cfg
 
 
+def _tuples(value: Any) -> Any:
+    """JSON lists as tuples, nested ones too: configs are hashable."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
 def _set_one(cfg: Any, assignment: str) -> Any:
     path, sep, text = assignment.partition("=")
     if not sep or not path:
@@ -243,9 +248,7 @@ def _set_one(cfg: Any, assignment: str) -> Any:
         if names[0] not in fields:
             raise ValueError(f"config assignment {assignment!r}: {type(node).__name__} has no field {names[0]!r} "
                              f"(known: {', '.join(sorted(fields)) or 'none'})")
-        inner = value if len(names) == 1 else put(getattr(node, names[0]), names[1:])
-        if isinstance(getattr(node, names[0]), tuple) and isinstance(inner, list):
-            inner = tuple(inner)
+        inner = _tuples(value) if len(names) == 1 else put(getattr(node, names[0]), names[1:])
         return dataclasses.replace(node, **{names[0]: inner})
 
     return put(cfg, path.split("."))

@@ -56,6 +56,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.numerics import safe_normalize, safe_sqrt
 from ne_jax.render.ide import integrated_dir_enc, positional_encoding
 
@@ -112,6 +113,8 @@ class ShadingConfig:
     """Width of the trunk and of the first hidden layer of the specular MLP."""
     head_width: int = 16
     """Hidden width of the two-layer heads (predicted normal, diffuse)."""
+    diffuse_widths: tuple[int, ...] | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
+    """Hidden widths of the diffuse head; ``None``: ``(head_width,)``, the released code's."""
     bottleneck_dim: int = 128
     """Bottleneck feature fed to the specular MLP."""
     ide_degree: int = 5
@@ -224,7 +227,8 @@ class SegmentShader(nn.Module):
             rgb = _pad_sigmoid(MLP(cfg.traditional_widths, 3, name="traditional")(x), cfg.rgb_padding)
             return ShadeOut(sigma=sigma, rgb=rgb, pred_normal=pred_normal)
 
-        linear = cfg.diffuse_scale * MLP((cfg.head_width,), 3, name="diffuse")(h)
+        widths = (cfg.head_width,) if cfg.diffuse_widths is None else cfg.diffuse_widths
+        linear = cfg.diffuse_scale * MLP(widths, 3, name="diffuse")(h)
         if not fx.specular:
             return ShadeOut(sigma=sigma, rgb=_pad_sigmoid(linear, cfg.rgb_padding),
                             pred_normal=pred_normal)

@@ -118,6 +118,12 @@ def test_config_set_changes_one_nested_field_and_names_bad_assignments():
     assert both == cj.config_set(gated, "train.confidence_lr=10") and cj.config_set(run) == run
     assert cj.config_set(run, "render.quadrature.samples_per_level=[2, 3, 5]").render.quadrature.samples_per_level \
         == (2, 3, 5)
+    wide = cj.config_set(run, "render.shading.diffuse_widths=[64, 16]")  # a None field takes a tuple too
+    assert wide.render.shading.diffuse_widths == (64, 16) and hash(wide) != hash(run)
+    assert cj.config_key(wide) != cj.config_key(run)
+    assert cj.config_set(wide, "render.shading.diffuse_widths=null") == run
+    bounds = cj.config_set(run, "init.carve.bounds=[[-1, -1, -1], [1, 1, 1]]").init.carve.bounds
+    assert bounds == ((-1, -1, -1), (1, 1, 1))
     with pytest.raises(ValueError, match="expected FIELD.PATH=VALUE"):
         cj.config_set(run, "render.kdtree.density_falloff")
     with pytest.raises(ValueError, match="KDTreeConfig has no field 'falloff'.*known: .*density_falloff"):
