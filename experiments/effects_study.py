@@ -1,6 +1,8 @@
 """What declaring a scene's effects buys: each benchmark scene trained with the effects its
 ``scene.json`` declares and with every effect on (``--effects all``), in one run: training time,
-time per test image (wall and this process's CPU time), parameters, test PSNR and SSIM.
+time per test image (wall and this process's CPU time), parameters, test PSNR and SSIM. With
+``--each-effect``, a scene that leaves out several effects is also trained with each of them
+switched on alone (what each one costs and buys on its own).
 
     python -m experiments.effects_study --root BENCH/tiny --preset tiny --runs RUNS --out effects_study_tiny
 
@@ -25,7 +27,7 @@ from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.eval import evaluate_model
-from ne_jax.train.effects import declare_effects
+from ne_jax.train.effects import ALL_ON, declare_effects, effects_of, scene_effects, with_declared
 from ne_jax.train.loop import train
 from ne_jax.train.run import get_run_preset
 
@@ -53,6 +55,16 @@ def _machine() -> dict:
 def _cpu_seconds() -> float:
     """This process's CPU time (user + system, all its threads): what a job costs, whatever else runs."""
     return time.process_time()
+
+
+def specs_for(preset: str, scene_dir: Path, each_effect: bool) -> list[str]:
+    """``scene``, then (with ``each_effect``, where the declaration leaves out more than one
+    effect) the declaration with each left-out effect switched on alone, as ``name=value`` specs,
+    then ``all``."""
+    declared = effects_of(with_declared(get_run_preset(preset).render, scene_effects(scene_dir) or {}))
+    left_out = [name for name, value in ALL_ON.items() if declared[name] != value]
+    singles = [",".join(f"{n}={v}" for n, v in {**declared, name: ALL_ON[name]}.items()) for name in left_out]
+    return ["scene", *(singles if each_effect and len(left_out) > 1 else []), "all"]
 
 
 def measure(preset: str, scene_dir: Path, spec: str, run_dir: Path) -> dict:
@@ -84,18 +96,21 @@ def main(argv=None) -> None:
     parser.add_argument("--scenes", nargs="+", default=list(SCENES))
     parser.add_argument("--runs", type=Path, required=True)
     parser.add_argument("--out", default=None)
+    parser.add_argument("--each-effect", action="store_true",
+                        help="also train each effect a scene leaves out, switched on alone")
     args = parser.parse_args(argv)
     out = args.out or f"effects_study_{args.preset}"
     rows = []
     machine_at_start, commit_at_start = _machine(), _commit()  # the code imported is the code at the start
     for scene in args.scenes:
-        for spec in ("scene", "all"):
-            rec = measure(args.preset, args.root / scene, spec, args.runs / scene / spec)
+        for spec in specs_for(args.preset, args.root / scene, args.each_effect):
+            folder = spec.replace("=", "-").replace(",", "_")
+            rec = measure(args.preset, args.root / scene, spec, args.runs / scene / folder)
             rec["scene"] = scene
             rows.append(rec)
             print(f"{scene} {spec}: {rec}", flush=True)
     command = (f"python -m experiments.effects_study --root {args.root} --preset {args.preset} --scenes "
-               f"{' '.join(args.scenes)} --runs RUNS --out {out}")
+               f"{' '.join(args.scenes)} --runs RUNS --out {out}" + (" --each-effect" if args.each_effect else ""))
     report = {"what": "declared effects against every effect on, per scene", "commit": commit_at_start,
               "command": command, "machine": machine_at_start,
               "load_average_at_end": _machine()["load_average_1_5_15_min"], "rows": rows}
