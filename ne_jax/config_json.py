@@ -248,7 +248,10 @@ def _set_one(cfg: Any, assignment: str) -> Any:
         if names[0] not in fields:
             raise ValueError(f"config assignment {assignment!r}: {type(node).__name__} has no field {names[0]!r} "
                              f"(known: {', '.join(sorted(fields)) or 'none'})")
-        inner = _tuples(value) if len(names) == 1 else put(getattr(node, names[0]), names[1:])
+        current = getattr(node, names[0])
+        inner = _tuples(value) if len(names) == 1 else put(current, names[1:])
+        if isinstance(current, float) and isinstance(inner, int) and not isinstance(inner, bool):
+            inner = float(inner)  # ``lr=10`` keys as the preset's ``10.0`` does
         return dataclasses.replace(node, **{names[0]: inner})
 
     return put(cfg, path.split("."))

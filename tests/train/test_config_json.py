@@ -46,7 +46,7 @@ def test_a_field_added_after_keying_changes_the_key_only_when_set():
     and change the key when set."""
     from ne_jax.train.run import RunConfig
 
-    run = RunConfig.tiny()
+    run = RunConfig.default()  # keeps both at their defaults
     assert "density_falloff" in cj.config_to_json(run)["render"]["kdtree"]
     assert "density_falloff" not in json.dumps(cj.config_to_json(run, _for_key=True))
     gated = run.replace(render=run.render.replace(kdtree=run.render.kdtree.replace(density_falloff=1.0)))
@@ -109,11 +109,14 @@ def test_a_config_stored_under_a_moved_type_name_reads_back_and_resumes():
 def test_config_set_changes_one_nested_field_and_names_bad_assignments():
     from ne_jax.train.run import RunConfig
 
-    run = RunConfig.tiny()
+    run = RunConfig.default()  # no density gate, confidences at the base rate
     gated = cj.config_set(run, "render.kdtree.density_falloff=1.0")
     assert gated.render.kdtree.density_falloff == 1.0 and gated.replace(render=run.render) == run
     assert cj.config_set(gated, "render.kdtree.density_falloff=null") == run
     assert cj.config_set(run, "train.confidence_lr=10").train.confidence_lr == 10
+    ten = cj.config_set(run, "train.confidence_lr=10")  # an integer for a float field keys as the float
+    assert isinstance(ten.train.confidence_lr, float)
+    assert cj.config_key(ten) == cj.config_key(run.replace(train=run.train.replace(confidence_lr=10.0)))
     both = cj.config_set(run, "render.kdtree.density_falloff=1.0", "train.confidence_lr=10")
     assert both == cj.config_set(gated, "train.confidence_lr=10") and cj.config_set(run) == run
     assert cj.config_set(run, "render.quadrature.samples_per_level=[2, 3, 5]").render.quadrature.samples_per_level \
