@@ -47,6 +47,19 @@ def parse_configs(items: list[str]) -> dict[str, list[str]]:
     return out
 
 
+def same_as_preset(preset: str, configs: dict[str, list[str]]) -> None:
+    """Raise ``ValueError`` naming a config whose changes leave the preset as it is (it would train
+    the ``baseline``'s models again under another name)."""
+    from ne_jax.config_json import config_key, config_set
+    from ne_jax.train.run import get_run_preset
+
+    base = get_run_preset(preset)
+    for name, changes in configs.items():
+        if changes and config_key(config_set(base, *changes)) == config_key(base):
+            raise ValueError(f"--config {name}: {', '.join(changes)} is the {preset} preset as it is "
+                             f"(config key {config_key(base)}); expected a change")
+
+
 def _train(preset: str, root: Path, scenes: list[str], out: Path, extra: list[str]) -> dict:
     """The ``train_benchmark`` results of one config (trained now, or read back when complete)."""
     name = preset + benchmark_suffix(root, scenes)
@@ -97,6 +110,7 @@ def main(argv=None) -> None:
     schedule += [] if args.steps_per_epoch is None else ["--steps-per-epoch", str(args.steps_per_epoch)]
     try:
         configs = parse_configs(args.config or [DEFAULT_CONFIG])
+        same_as_preset(args.preset, configs)
     except ValueError as e:
         parser.error(str(e))
     roots = {}

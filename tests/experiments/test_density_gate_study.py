@@ -16,6 +16,7 @@ def test_two_step_study_tables_both_configs(tmp_path):
 
     generate_scene("glossy", TRAIN_SCENE, tmp_path / "bench", seed=0)
     argv = ["--root", f"tiny={tmp_path / 'bench'}", "--scenes", "glossy", "--runs", str(tmp_path / "runs"),
+            "--config", "gate=render.kdtree.density_falloff=2.0",
             "--epochs", "1", "--steps-per-epoch", "2", "--results", str(tmp_path / "out")]
     density_gate_study.main(argv)
     res = json.loads((tmp_path / "out" / "density_gate_tiny.json").read_text())
@@ -40,3 +41,11 @@ def test_configs_are_named_and_checked():
     for bad in (["render.kdtree.density_falloff=1.0"], ["g=x"], ["baseline=train.confidence_lr=2"]):
         with pytest.raises(ValueError, match="--config"):
             density_gate_study.parse_configs(bad)
+
+
+def test_a_config_that_is_the_preset_is_refused():
+    density_gate_study.same_as_preset("default", {"baseline": [], "gate": ["render.kdtree.density_falloff=1.0"]})
+    with pytest.raises(ValueError, match="--config gate: .* is the tiny preset as it is"):
+        density_gate_study.same_as_preset("tiny", {"baseline": [], "gate": ["render.kdtree.density_falloff=1.0"]})
+    with pytest.raises(SystemExit):  # the command line says so before training anything
+        density_gate_study.main(["--root", "tiny=.", "--runs", "RUNS"])
