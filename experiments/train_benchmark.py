@@ -28,6 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from experiments.common import benchmark_suffix
@@ -169,7 +170,9 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
         "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
         "batch_size": run.sampler.batch_size, "background": run.background, "set": list(sets),
         "scenes": scenes,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "jax_devices": jax.device_count(),
+                    "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()]},
     }
     results.mkdir(parents=True, exist_ok=True)
     atomic_write_json(results / f"train_benchmark_{name}.json", report)
