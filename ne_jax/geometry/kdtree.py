@@ -34,13 +34,14 @@ for each non-empty node of the five candidate levels (empty nodes: the sentinel,
 by a cascade of certified supersets whose widths follow the data (see ``_candidate_sets``) on a
 thread pool. ``python -m experiments.bench_geometry --build --repeat 2``
 (``bench_geometry_build.json``: ``build_tree``, a bare ``cKDTree(points)`` and the previous build
-interleaved in one process, best of 2, on the shared 2-core CPU at load 3-7, so only the ratios
-mean much): 1e6 surface points 13.6 s = 20x ``cKDTree`` (candidates 10.6 s, splits 2.0 s; 12-17x
-in two other runs); 1e6 uniform points 24.6 s = 26x; the paper's depth 21 with 112k points 8.0 s,
-5.7x faster than the previous build (2.9 s in a quieter run). Candidate sets are 80% of the
-build: the exact, sorted 96 nearest points of ~``n`` box centres, paid in numpy's per-element work
-(distances, uint64 key sorts, gathers) and scipy's wide queries at the growing level
-(docs/studies/geometry.md, "The build against cKDTree").
+interleaved in one process, best of 2, on the shared 2-core CPU at load 2-4, so only the ratios
+mean much): 1e6 surface points 5.65 s = 11.5x ``cKDTree`` (candidates 3.7 s, splits 1.4 s;
+12-20x in three other runs); 1e6 uniform points 9.8 s = 17x; the paper's depth 21 with 112k points
+3.7 s, 4.4x faster than the previous build. Candidate sets are 65-80% of the build: the exact,
+sorted 96 nearest points of ~``n`` box centres, paid in numpy's per-element work (distances, uint64
+key sorts, gathers) and scipy's wide queries at the growing level; scipy's own k-NN query of those
+rows costs 2.1x the cascade, 15.7x a ``cKDTree`` build (docs/studies/geometry.md, "The build
+against cKDTree").
 """
 
 from __future__ import annotations
