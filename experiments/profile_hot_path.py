@@ -95,8 +95,9 @@ def _new_api() -> bool:
     return importlib.util.find_spec("ne_jax.geometry.capacity") is not None
 
 
-def build_inputs(quick: bool):
-    """The ``default`` scene, a render batch and a training batch (see the module docstring)."""
+def build_inputs(quick: bool, run=None):
+    """The ``default`` scene, a render batch and a training batch (see the module docstring);
+    ``run``: a :class:`~ne_jax.train.run.RunConfig` in place of the ``default`` preset."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -109,7 +110,7 @@ def build_inputs(quick: bool):
     from ne_jax.render.renderer import PointScene
     from ne_jax.train.run import get_run_preset
 
-    run = get_run_preset(CONFIG)
+    run = get_run_preset(CONFIG) if run is None else run
     cfg = run.render
     n = 20_000 if quick else POINTS
     smp = S.get_scene("glossy", 1.0)
@@ -186,8 +187,9 @@ def measure_whole(repeats: int, quick: bool) -> dict:
             "loss": float(out["loss/total"]), "dropped": dropped, "overflow": overflow}
 
 
-def profile_stages(repeats: int, quick: bool) -> dict:
-    """Every stage of the render and the step jitted alone, with time and XLA FLOPs (this checkout)."""
+def profile_stages(repeats: int, quick: bool, run=None) -> dict:
+    """Every stage of the render and the step jitted alone, with time and XLA FLOPs (this checkout);
+    ``run`` as in :func:`build_inputs`."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -204,7 +206,7 @@ def profile_stages(repeats: int, quick: bool) -> dict:
     from ne_jax.train.state import init_train_state
     from ne_jax.train.step import make_train_step
 
-    run, scene, rrays, trays, build_s, hit_share = build_inputs(quick)
+    run, scene, rrays, trays, build_s, hit_share = build_inputs(quick, run)
     bg = jnp.ones(3)
     a = jnp.ones((2048, 2048), jnp.float32)
     mm = jax.jit(lambda x: x @ x)
