@@ -16,12 +16,11 @@ Writes ``experiments/results/bench_effects_step.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 from pathlib import Path
 
-from experiments.profile_hot_path import CONFIG, RESULTS, build_inputs, profile_stages
+from experiments.profile_hot_path import CONFIG, RESULTS, build_inputs, profile_stages, write_report
 
 SPECS = {  # label -> --effects spec
     "declared by blocks (specular off, constant background)": "specular=off,background_model=constant",
@@ -90,11 +89,7 @@ def main(argv=None) -> None:
               "commit": commit(), "config": CONFIG, "repeats": args.repeats, "device": str(jax.devices()[0]),
               "jax": jax.__version__, "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
               "rows": rows}
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    stem = "bench_effects_step" + ("_quick" if args.quick else "")
-    (args.out_dir / f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n")
-    write_md(report, args.out_dir / f"{stem}.md")
-    print((args.out_dir / f"{stem}.md").read_text())
+    write_report(report, write_md, args.out_dir, "bench_effects_step" + ("_quick" if args.quick else ""))
 
 
 if __name__ == "__main__":

@@ -364,6 +364,14 @@ def write_md(report: dict, path: Path) -> None:
     path.write_text("\n".join(lines))
 
 
+def write_report(report: dict, write_md, out_dir: Path, stem: str) -> None:
+    """``out_dir/<stem>.json`` and the table ``write_md(report, out_dir/<stem>.md)``, printed."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_md(report, out_dir / f"{stem}.md")
+    print((out_dir / f"{stem}.md").read_text())
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--reference-path", default="/tmp/ne/prof_ref")
@@ -396,11 +404,7 @@ def main(argv=None) -> None:
         "ratio": {"render": best["new"]["render_rays_per_s"] / best["reference"]["render_rays_per_s"],
                   "step": best["new"]["step_rays_per_s"] / best["reference"]["step_rays_per_s"]},
     }
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    stem = "profile_hot_path" + ("_quick" if args.quick else "")
-    (args.out_dir / f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n")
-    write_md(report, args.out_dir / f"{stem}.md")
-    print((args.out_dir / f"{stem}.md").read_text())
+    write_report(report, write_md, args.out_dir, "profile_hot_path" + ("_quick" if args.quick else ""))
 
 
 if __name__ == "__main__":
