@@ -20,40 +20,40 @@ import os
 import platform
 from pathlib import Path
 
-from experiments.profile_hot_path import CONFIG, RESULTS, build_inputs, profile_stages, write_report
+from experiments.common import write_results
+from experiments.profile_hot_path import CONFIG, RESULTS, profile_stages
 
 SPECS = {  # label -> --effects spec
     "declared by blocks (specular off, constant background)": "specular=off,background_model=constant",
     "specular alone (the preset)": "specular=on,background_model=constant",
     "background sphere alone": "specular=off,background_model=sphere",
-    "every effect (specular, sphere)": "all",
+    "every effect (specular, sphere)": "all",  # ne_jax.train.effects.ALL_ON
 }
 
 
 def _row(label: str, spec: str, repeats: int, quick: bool) -> dict:
     import jax
 
-    from ne_jax.train.effects import ALL_ON, parse_effects, with_declared
+    from ne_jax.render.shading import init_color_model
+    from ne_jax.train.effects import declare_effects
     from ne_jax.train.run import get_run_preset
-    from ne_jax.train.state import init_train_state
 
     base = get_run_preset(CONFIG)
-    declared = dict(ALL_ON) if spec == "all" else parse_effects(spec)
-    run = base.replace(render=with_declared(base.render, declared))
+    render, record = declare_effects(base.render, spec, scene_dir=None)
+    run = base.replace(render=render)
     prof = profile_stages(repeats, quick, run)
     ms = {(r["batch"], r["stage"]): r["ms"] for r in prof["rows"]}
-    _, scene, *_ = build_inputs(True, run)  # the colour model's size does not depend on the points
-    params = init_train_state(run.train, run.render, scene.points, jax.random.key(1)).params
+    params = init_color_model(render.shading, jax.random.key(1))
     n_params = sum(int(x.size) for x in jax.tree_util.tree_leaves(params))
     step, shade_t = ms[("train", "whole training step")], ms[("train", "MLPs (shade)")]
     render, shade_r = ms[("render", "whole render")], ms[("render", "MLPs (shade)")]
-    return {"label": label, "spec": spec, "effects": declared, "colour_parameters": n_params,
+    return {"label": label, "spec": spec, "effects": record["effects"], "colour_parameters": n_params,
             "step_ms": step, "shade_train_ms": shade_t, "shade_share_of_step": shade_t / step,
             "render_ms": render, "shade_render_ms": shade_r, "shade_share_of_render": shade_r / render,
             "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()], "profile": prof}
 
 
-def write_md(report: dict, path: Path) -> None:
+def to_markdown(report: dict) -> str:
     ref = report["rows"][-1]
     lines = [f"# The colour model's share of a `{CONFIG}` step, per declared effects", "",
              f"Commit {report['commit']}, {report['device']}, jax {report['jax']}, {report['machine']['cpus']} CPUs. "
@@ -67,7 +67,7 @@ def write_md(report: dict, path: Path) -> None:
                      f"({100 * r['shade_share_of_step']:.0f}%) | {r['step_ms'] / ref['step_ms']:.2f}x | "
                      f"{r['render_ms']:.1f} | {r['shade_render_ms']:.1f} ({100 * r['shade_share_of_render']:.0f}%) | "
                      f"{r['render_ms'] / ref['render_ms']:.2f}x |")
-    path.write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> None:
@@ -89,7 +89,7 @@ def main(argv=None) -> None:
               "commit": commit(), "config": CONFIG, "repeats": args.repeats, "device": str(jax.devices()[0]),
               "jax": jax.__version__, "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
               "rows": rows}
-    write_report(report, write_md, args.out_dir, "bench_effects_step" + ("_quick" if args.quick else ""))
+    write_results(args.out_dir, "bench_effects_step" + ("_quick" if args.quick else ""), report, to_markdown(report))
 
 
 if __name__ == "__main__":

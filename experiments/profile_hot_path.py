@@ -338,7 +338,7 @@ def _fmt(v, spec):
     return "" if v is None else format(v, spec)
 
 
-def write_md(report: dict, path: Path) -> None:
+def to_markdown(report: dict) -> str:
     prof = report["profile"]
     lines = [f"# Hot-path profile, `{CONFIG}` preset", "",
              f"Commit {report['commit']} (reference {report['reference_commit']}), {report['device']}, "
@@ -361,15 +361,7 @@ def write_md(report: dict, path: Path) -> None:
         lines.append(f"| {name} | {w['render_rays_per_s']:.0f} | {w['step_rays_per_s']:.0f} | {w['loss']:.6f} |")
     rt = report["ratio"]
     lines += ["", f"Ratio new / reference: render {rt['render']:.2f}x, training step {rt['step']:.2f}x.", ""]
-    path.write_text("\n".join(lines))
-
-
-def write_report(report: dict, write_md, out_dir: Path, stem: str) -> None:
-    """``out_dir/<stem>.json`` and the table ``write_md(report, out_dir/<stem>.md)``, printed."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n")
-    write_md(report, out_dir / f"{stem}.md")
-    print((out_dir / f"{stem}.md").read_text())
+    return "\n".join(lines)
 
 
 def main(argv=None) -> None:
@@ -385,6 +377,8 @@ def main(argv=None) -> None:
         print(json.dumps(measure_whole(args.repeats, args.quick)))
         return
     import jax
+
+    from experiments.common import write_results
 
     whole = {"reference": [], "new": []}
     paths = {"reference": args.reference_path, "new": None}
@@ -404,7 +398,7 @@ def main(argv=None) -> None:
         "ratio": {"render": best["new"]["render_rays_per_s"] / best["reference"]["render_rays_per_s"],
                   "step": best["new"]["step_rays_per_s"] / best["reference"]["step_rays_per_s"]},
     }
-    write_report(report, write_md, args.out_dir, "profile_hot_path" + ("_quick" if args.quick else ""))
+    write_results(args.out_dir, "profile_hot_path" + ("_quick" if args.quick else ""), report, to_markdown(report))
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ import dataclasses
 from pathlib import Path
 
 from experiments import common
-from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.eval import evaluate_model
@@ -88,10 +87,7 @@ def main(argv=None) -> None:
         else:
             lines.append(f"| {r['label']} | {r['config_key']} | {r['pixel_samples']}x{r['pixel_samples']} | "
                          f"{r['psnr']:.2f} | {r['psnr_view_from_normal']:.2f} | {r['drop_db']:.2f} |")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(RESULTS / f"{args.out}.json", report)
-    atomic_write_text(RESULTS / f"{args.out}.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    common.write_results(RESULTS, args.out, report, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
