@@ -98,19 +98,27 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=None)
     parser.add_argument("--each-effect", action="store_true",
                         help="also train each effect a scene leaves out, switched on alone")
+    parser.add_argument("--specs", nargs="+", default=None, metavar="SPEC",
+                        help="only these of each scene's runs (`scene`, `all`, or a `name=value,...` spec of "
+                             "--each-effect), e.g. to spread one study over several processes")
     args = parser.parse_args(argv)
     out = args.out or f"effects_study_{args.preset}"
     rows = []
     machine_at_start, commit_at_start = _machine(), _commit()  # the code imported is the code at the start
     for scene in args.scenes:
-        for spec in specs_for(args.preset, args.root / scene, args.each_effect):
+        specs = specs_for(args.preset, args.root / scene, args.each_effect)
+        unknown = sorted(set(args.specs or ()) - set(specs))
+        if unknown:
+            parser.error(f"--specs {' '.join(unknown)}: {scene} trains only {', '.join(specs)}")
+        for spec in [s for s in specs if args.specs is None or s in args.specs]:
             folder = spec.replace("=", "-").replace(",", "_")
             rec = measure(args.preset, args.root / scene, spec, args.runs / scene / folder)
             rec["scene"] = scene
             rows.append(rec)
             print(f"{scene} {spec}: {rec}", flush=True)
     command = (f"python -m experiments.effects_study --root {args.root} --preset {args.preset} --scenes "
-               f"{' '.join(args.scenes)} --runs RUNS --out {out}" + (" --each-effect" if args.each_effect else ""))
+               f"{' '.join(args.scenes)} --runs RUNS --out {out}" + (" --each-effect" if args.each_effect else "")
+               + (f" --specs {' '.join(args.specs)}" if args.specs else ""))
     report = {"what": "declared effects against every effect on, per scene", "commit": commit_at_start,
               "command": command, "machine": machine_at_start,
               "load_average_at_end": _machine()["load_average_1_5_15_min"], "rows": rows}

@@ -27,3 +27,17 @@ def test_each_effect_adds_one_run_per_left_out_effect_only_where_several_are(tmp
     got = [tuple(declare_effects(base, s, lambertian)[1]["effects"].values()) for s in specs]
     assert got == [("off", "constant"), ("on", "constant"), ("off", "sphere"), ("on", "sphere")]
     assert effects_study.specs_for("tiny", shiny, True) == ["scene", "all"]  # one left out: that is ``all``
+
+
+def test_a_spec_the_scene_does_not_train_is_refused_before_any_training(tmp_path, capsys):
+    _scene(tmp_path, "glossy", {"specular": True, "background_model": "constant"})
+    try:
+        effects_study.main(["--root", str(tmp_path), "--scenes", "glossy", "--runs", str(tmp_path / "runs"),
+                            "--specs", "scene", "specular=off"])
+    except SystemExit as exit_:
+        assert exit_.code == 2
+    else:
+        raise AssertionError("an unknown --specs entry must stop the study")
+    err = capsys.readouterr().err
+    assert "--specs specular=off" in err and "glossy trains only scene, all" in err
+    assert not (tmp_path / "runs").exists()
