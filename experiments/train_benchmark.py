@@ -71,6 +71,7 @@ def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool 
         "test_psnr": round(report["psnr"], 2), "test_ssim": round(report["ssim"], 4),
         "per_view_psnr": [round(v["psnr"], 2) for v in report["views"]],
         "train_seconds": round(train_seconds, 1), "eval_seconds": round(eval_seconds, 1),
+        "train_cpu_seconds": None if result.recorded_cpu_seconds is None else round(result.recorded_cpu_seconds, 1),
         "steps": int(result.state.step), "skipped_steps": int(result.state.skipped),
         "initial_points": len(init), "final_points": len(final),
         "chamfer_initial": round(before.mean, 5), "chamfer_final": round(after.mean, 5),
@@ -164,7 +165,9 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
                 "only the samples a training camera sees (seen_share of them; ne_jax.benchmark.generate."
                 "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it "
                 "(initial cloud, epochs with "
-                "their compiles, point-cloud rounds; summed over the sittings of a resumed run)",
+                "their compiles, point-cloud rounds; summed over the sittings of a resumed run), "
+                "train_cpu_seconds the process's CPU time over the same parts (null for a run directory "
+                "recorded without it)",
         "preset": preset, "benchmark": name,
         "commit": ", ".join(sorted({s.get("commit", "unknown") for s in scenes.values()})),
         "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,

@@ -126,6 +126,16 @@ class TrainedModel:
             s += float(e.get("train_seconds", 0.0)) + float(e.get("points", {}).get("seconds", 0.0))
         return s
 
+    @property
+    def recorded_cpu_seconds(self) -> float | None:
+        """The process's CPU time (all its threads) over the same parts as :attr:`recorded_seconds`,
+        summed over every session of a resumed run; None where a part was recorded without it (a
+        run started from a model records no initial cloud, which counts as zero)."""
+        cpu = [self.initial.get("cpu_seconds", None if "seconds" in self.initial else 0.0)]
+        for e in self.history:
+            cpu += [e.get("train_cpu_seconds")] + ([e["points"].get("cpu_seconds")] if "points" in e else [])
+        return None if None in cpu else float(sum(cpu))
+
     def render_image(self, camera: Camera, *, progress: bool = False) -> RenderOut:
         """Render one camera's image (see :func:`~ne_jax.render.renderer.render_image`)."""
         return render_image(self.run.render, self.params, self.scene, camera, parse_background(self.background),

@@ -94,6 +94,14 @@ def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
     expected = second.initial["seconds"] + sum(e["train_seconds"] + e.get("points", {}).get("seconds", 0) for e in h)
     assert second.recorded_seconds == pytest.approx(expected)
     assert h[0]["train_seconds"] == first.history[0]["train_seconds"]
+    # and so does its CPU time, over the same parts (each recorded, so a resumed run still has it)
+    cpu = second.initial["cpu_seconds"] + sum(e["train_cpu_seconds"] + e.get("points", {}).get("cpu_seconds", 0)
+                                              for e in h)
+    assert second.recorded_cpu_seconds == pytest.approx(cpu) and all(e["train_cpu_seconds"] > 0 for e in h)
+    assert h[0]["train_cpu_seconds"] == first.history[0]["train_cpu_seconds"]
+    # a history recorded without CPU times (an older run directory) has none, rather than a part of it
+    older = second.replace(history=[{k: v for k, v in e.items() if k != "train_cpu_seconds"} for e in h])
+    assert older.recorded_cpu_seconds is None
 
 
 def test_resuming_a_run_of_another_config_names_the_fields(full_run, scene_dir):
