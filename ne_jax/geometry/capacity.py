@@ -186,16 +186,20 @@ def grow(cap: Capacities, lost: Lost | LostCounts, buffers: tuple[str, ...] = BU
     return None if cap == start else cap
 
 
+PACKING_STEP = 2.0
+""":func:`fit_packing` sizes the budget in multiples of this many segments per ray (a training
+step's time follows its budget: experiments/bench_packing.py)."""
+
+
 def fit_packing(cap: Capacities, mean_segments: float, headroom: float = 1.25) -> Capacities:
     """``cap`` with a packing budget that holds ``headroom`` times ``mean_segments`` (the mean segments
-    per ray of a probe batch): the budget doubled as often as needed, never lowered. Sized before
-    training, where a batch's dropped segments would leave their rays training on the background."""
-    if cap.segments_per_ray is None:
+    per ray of a probe batch): the smallest multiple of :data:`PACKING_STEP` that does, never lowered.
+    Sized before training, where a batch's dropped segments would leave their rays training on the
+    background; each new size compiles the step once more."""
+    need = headroom * mean_segments
+    if cap.segments_per_ray is None or cap.segments_per_ray >= need:
         return cap
-    budget = cap.segments_per_ray
-    while budget < headroom * mean_segments:
-        budget *= 2.0
-    return cap.replace(segments_per_ray=budget)
+    return cap.replace(segments_per_ray=PACKING_STEP * math.ceil(need / PACKING_STEP))
 
 
 __all__ = ["BUFFERS", "Capacities", "Lost", "LostCounts", "fit_packing", "grow"]

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ne_jax.geometry.capacity import Capacities, Lost, LostCounts, fit_packing, grow
+from ne_jax.geometry.capacity import PACKING_STEP, Capacities, Lost, LostCounts, fit_packing, grow
 
 
 def lost(frontier=0, slots=0, packing=0, emitted=(1, 2, 3)):
@@ -51,11 +51,15 @@ def test_unpacked_renders_never_grow_a_budget():
     assert fit_packing(cap, 100.0) == cap
 
 
-def test_fit_packing_doubles_until_the_probe_fits_and_never_lowers():
+def test_fit_packing_takes_the_smallest_step_that_holds_the_probe_and_never_lowers():
+    assert PACKING_STEP == 2.0
     cap = Capacities(segments_per_ray=4.0)
     assert fit_packing(cap, 2.0) == cap
-    assert fit_packing(cap, 4.0) == cap.replace(segments_per_ray=8.0)  # headroom 1.25
-    assert fit_packing(cap, 13.0, headroom=1.0) == cap.replace(segments_per_ray=16.0)
+    assert fit_packing(cap, 3.2) == cap  # 1.25 x 3.2 = 4: held exactly
+    assert fit_packing(cap, 4.0) == cap.replace(segments_per_ray=6.0)  # headroom 1.25: 5 -> 6
+    assert fit_packing(cap, 6.9) == cap.replace(segments_per_ray=10.0)  # 8.6 -> 10, not 16
+    assert fit_packing(cap, 13.0, headroom=1.0) == cap.replace(segments_per_ray=14.0)
+    assert fit_packing(Capacities(segments_per_ray=16.0), 6.9) == Capacities(segments_per_ray=16.0)
 
 
 def test_lost_counts_add_over_batches():
