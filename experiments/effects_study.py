@@ -75,8 +75,7 @@ def measure(preset: str, scene_dir: Path, spec: str, run_dir: Path) -> dict:
     fresh = not (Path(run_dir) / "metrics.json").exists()  # else resumed or cached: its CPU time as recorded
     c0 = _cpu_seconds()
     model = train(run, scene_dir, run_dir, progress=False, log=lambda s: None, notes={"effects": record})
-    recorded = model.recorded_cpu_seconds
-    train_cpu = round(_cpu_seconds() - c0, 1) if fresh else None if recorded is None else round(recorded, 1)
+    train_cpu = _cpu_seconds() - c0 if fresh else model.recorded_cpu_seconds
     split = load_split(scene_dir, "test")
     evaluate_model(model, split, progress=False, lpips_net=None)  # compiles
     t0, c0 = time.perf_counter(), _cpu_seconds()
@@ -86,7 +85,8 @@ def measure(preset: str, scene_dir: Path, spec: str, run_dir: Path) -> dict:
     params = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(model.state.params))
     return {"spec": spec, "effects": record["effects"], "source": record["source"], "config_key": config_key(run),
             "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()],
-            "train_seconds": round(model.recorded_seconds, 1), "train_cpu_seconds": train_cpu,
+            "train_seconds": round(model.recorded_seconds, 1),
+            "train_cpu_seconds": None if train_cpu is None else round(train_cpu, 1),
             "seconds_per_image": round(per_image, 3), "cpu_seconds_per_image": round(cpu_per_image, 3),
             "parameters": params, "psnr": round(report["psnr"], 2), "ssim": round(report["ssim"], 4)}
 

@@ -111,6 +111,16 @@ class TrainingDiverged(RuntimeError):
     """Every step of an epoch was refused for non-finite values; the message names the terms."""
 
 
+def _clock() -> tuple[float, float]:
+    """Now, as ``(wall, CPU)`` seconds: ``perf_counter`` and this process's CPU time (all threads)."""
+    return time.perf_counter(), time.process_time()
+
+
+def _since(start: tuple[float, float]) -> tuple[float, float]:
+    """Wall and CPU seconds since ``start`` (a :func:`_clock` reading), rounded to 10 ms."""
+    return tuple(round(now - then, 2) for now, then in zip(_clock(), start))
+
+
 def _keys(seed: int):
     base = jax.random.key(seed)
     k_points, k_model, k_batch, k_rounds = jax.random.split(base, 4)
@@ -233,12 +243,12 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         initial = {"source": "model", "points": int(np.asarray(points.alive).sum()), "capacity": points.capacity,
                    "ground_truth": False, **_json_safe(dict(start.note))}
     else:
-        t0, c0 = time.perf_counter(), time.process_time()
+        began = _clock()
         cloud = initial_cloud(run.init, scene_dir, views)
         points = initial_points(run, cloud, views, k_points)
+        seconds, cpu_seconds = _since(began)
         initial = {"source": cloud.source, "points": len(cloud), "capacity": points.capacity,
-                   "ground_truth": cloud.is_ground_truth, "seconds": round(time.perf_counter() - t0, 2),
-                   "cpu_seconds": round(time.process_time() - c0, 2),
+                   "ground_truth": cloud.is_ground_truth, "seconds": seconds, "cpu_seconds": cpu_seconds,
                    "info": _json_safe(dict(cloud.info))}
         if cloud.is_ground_truth:
             log("note: the initial cloud is the benchmark's ground-truth surface samples (as asked); "
@@ -266,7 +276,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                disable=not progress, dynamic_ncols=True)
     try:
         for epoch in range(first_epoch, run.epochs + 1):
-            t0, c0 = time.perf_counter(), time.process_time()
+            began = _clock()
             metrics = []
             step0 = (epoch - 1) * run.steps_per_epoch
             with count_compiles() as compiles:  # the step's (its batches' sampler compiled in fit())
@@ -287,13 +297,12 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                 raise TrainingDiverged(
                     f"epoch {epoch}: all {record['steps']} steps were refused because of non-finite values "
                     f"(terms: {', '.join(record.get('non_finite', ['?']))}); parameters were left unchanged")
-            record["train_seconds"] = round(time.perf_counter() - t0, 2)
-            record["train_cpu_seconds"] = round(time.process_time() - c0, 2)
+            record["train_seconds"], record["train_cpu_seconds"] = _since(began)
             record["capacities"] = dataclasses.asdict(scene.capacities)
             # a batch lost segments to the packing budget: grow it (the traversal's losses are counted)
             scene = scene.grown(LostCounts(**record["lost"]), TRAINING_GROWS) or scene
             if run.round_after(epoch):
-                t1, c1 = time.perf_counter(), time.process_time()
+                round_began = _clock()
                 trained = state.scene(scene)
                 rays = sample_batch(sampler.replace(batch_size=run.rounds.grow_rays), pool,
                                     jax.random.fold_in(k_rounds, epoch)).rays
@@ -303,8 +312,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                 state = state.with_points(new_points, reset)
                 scene = PointScene.build(new_points, run.render, scene.capacities)
                 _write_rest(run_dir, scene)  # before the checkpoint: a resume never carries a rebuilt cloud
-                report["seconds"] = round(time.perf_counter() - t1, 2)
-                report["cpu_seconds"] = round(time.process_time() - c1, 2)
+                report["seconds"], report["cpu_seconds"] = _since(round_began)
                 record["points"] = report
             scene = fit(scene, epoch)
             record["alive"] = int(np.asarray(scene.points.alive).sum())

@@ -117,23 +117,27 @@ class TrainedModel:
     def background(self):
         return self.run.background
 
+    def _timed_parts(self) -> list[tuple[float, float | None]]:
+        """``(wall s, CPU s or None)`` of each part the loop timed: the initial cloud (none for a run
+        started from a model), every epoch with its compiles, every point-cloud round."""
+        parts = [(self.initial["seconds"], self.initial.get("cpu_seconds"))] if "seconds" in self.initial else []
+        for e in self.history:
+            parts.append((e.get("train_seconds", 0.0), e.get("train_cpu_seconds")))
+            if "points" in e:
+                parts.append((e["points"].get("seconds", 0.0), e["points"].get("cpu_seconds")))
+        return parts
+
     @property
     def recorded_seconds(self) -> float:
         """Training wall time as the loop recorded it (initial cloud, epochs with their compiles,
         point-cloud rounds), summed over every session of a resumed run."""
-        s = float(self.initial.get("seconds", 0.0))
-        for e in self.history:
-            s += float(e.get("train_seconds", 0.0)) + float(e.get("points", {}).get("seconds", 0.0))
-        return s
+        return float(sum(wall for wall, _ in self._timed_parts()))
 
     @property
     def recorded_cpu_seconds(self) -> float | None:
         """The process's CPU time (all its threads) over the same parts as :attr:`recorded_seconds`,
-        summed over every session of a resumed run; None where a part was recorded without it (a
-        run started from a model records no initial cloud, which counts as zero)."""
-        cpu = [self.initial.get("cpu_seconds", None if "seconds" in self.initial else 0.0)]
-        for e in self.history:
-            cpu += [e.get("train_cpu_seconds")] + ([e["points"].get("cpu_seconds")] if "points" in e else [])
+        summed over every session of a resumed run; None if a part was recorded without it."""
+        cpu = [c for _, c in self._timed_parts()]
         return None if None in cpu else float(sum(cpu))
 
     def render_image(self, camera: Camera, *, progress: bool = False) -> RenderOut:
