@@ -14,7 +14,8 @@ One round (:func:`point_round`) on a trained model:
    count, highest priority first. New points take the KNN-interpolated feature at their position and
    confidence 0.5; they fill dead slots first and the capacity is re-allocated on the host when
    that is not enough (:func:`add_points`).
-2. **Prune** points with confidence below ``prune_threshold``.
+2. **Prune** points with confidence below ``prune_threshold`` (at most ``prune_max_fraction`` of them
+   per round, the least confident, when set).
 3. **Denoise**: Open3D statistical outlier removal (``outlier_neighbors`` = 64 neighbours as the
    released code, ``outlier_std_ratio``), limited to points at least ``outlier_min_ratio`` times the
    median mean-neighbour distance from their neighbours (ours: without it a clean cloud loses its
@@ -74,6 +75,11 @@ class RoundConfig:
     """At most this share of the alive count is added per round."""
     prune_threshold: float = 0.1
     """Points with confidence below this are pruned (docs/design.md: 0.1)."""
+    prune_max_fraction: float | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
+    """``None``: every point below the threshold goes (the released code). A number: at most this share
+    of the alive count per round, the least confident first, so confidences that fall in bulk (a
+    density gate whose confidences learn fast over long epochs) thin the cloud round by round instead
+    of emptying it in one."""
     outlier_neighbors: int = 64
     """Neighbours of the statistical outlier removal (released code: 64)."""
     outlier_std_ratio: float = 3.0
@@ -106,6 +112,8 @@ class RoundConfig:
         need(self.grow_cell > 0, "grow_cell", "> 0")
         need(0 <= self.grow_max_fraction <= 1, "grow_max_fraction", "a value in [0, 1]")
         need(0 <= self.prune_threshold < 1, "prune_threshold", "a value in [0, 1)")
+        need(self.prune_max_fraction is None or 0 <= self.prune_max_fraction <= 1, "prune_max_fraction",
+             "None or a value in [0, 1]")
         need(self.outlier_neighbors >= 2, "outlier_neighbors", "an integer >= 2")
         need(self.outlier_std_ratio > 0, "outlier_std_ratio", "> 0")
         need(self.outlier_min_ratio >= 0, "outlier_min_ratio", ">= 0")
@@ -284,10 +292,22 @@ def _guarded_removal(points: PointState, remove: np.ndarray, min_points: int, wh
 
 
 def prune_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, dict]:
-    """Mark points with confidence below ``cfg.prune_threshold`` dead (unless fewer than
-    ``cfg.min_points`` would stay alive). Returns ``(points, report)``."""
-    low = np.asarray(points.confidence) < cfg.prune_threshold
-    return _guarded_removal(points, low, cfg.min_points, "pruned")
+    """Mark points with confidence below ``cfg.prune_threshold`` dead, at most
+    ``cfg.prune_max_fraction`` of the alive count (the least confident; ties by index), unless fewer
+    than ``cfg.min_points`` would stay alive. Returns ``(points, report)``; ``pruned_over_cap``
+    counts the points below the threshold that the cap kept."""
+    confidence = np.asarray(points.confidence)
+    low = (confidence < cfg.prune_threshold) & np.asarray(points.alive)
+    over = 0
+    if cfg.prune_max_fraction is not None:
+        cap = int(np.floor(cfg.prune_max_fraction * int(np.asarray(points.alive).sum())))
+        candidates = np.flatnonzero(low)
+        over = max(0, candidates.size - cap)
+        if over:
+            low[:] = False
+            low[candidates[np.argsort(confidence[candidates], kind="stable")[:cap]]] = True
+    points, report = _guarded_removal(points, low, cfg.min_points, "pruned")
+    return points, {**report, **({"pruned_over_cap": over} if cfg.prune_max_fraction is not None else {})}
 
 
 def mean_neighbor_distance(xyz: np.ndarray, k: int) -> np.ndarray:

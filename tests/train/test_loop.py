@@ -236,6 +236,27 @@ def test_pruning_everything_is_refused_and_reported(full_run):
     assert report["pruned"] == int(np.asarray(points.alive)[:10].sum()) and not np.asarray(pruned.alive)[:10].any()
 
 
+def test_pruning_cap_takes_the_least_confident_first(full_run):
+    points = full_run.scene.points
+    alive = np.flatnonzero(np.asarray(points.alive))
+    low = alive[:40]
+    logits = np.asarray(points.conf_logit).copy()
+    logits[low] = np.linspace(-9.0, -3.0, low.size)  # all below 0.1; the first ones least confident
+    some = points.replace(conf_logit=jnp.asarray(logits))
+    cap = 10 / alive.size + 1e-9  # room for exactly 10 points
+    pruned, report = prune_points(RoundConfig(prune_max_fraction=cap), some)
+    dead = np.flatnonzero(np.asarray(some.alive) & ~np.asarray(pruned.alive))
+    np.testing.assert_array_equal(dead, low[:10])
+    assert report["pruned"] == 10 and report["pruned_over_cap"] == 30
+    uncapped, report = prune_points(RoundConfig(), some)
+    assert report["pruned"] == 40 and "pruned_over_cap" not in report
+    none, report = prune_points(RoundConfig(prune_max_fraction=0.0), some)
+    assert report["pruned"] == 0 and report["pruned_over_cap"] == 40
+    np.testing.assert_array_equal(np.asarray(none.alive), np.asarray(some.alive))
+    with pytest.raises(ValueError, match="prune_max_fraction"):
+        RoundConfig(prune_max_fraction=1.5)
+
+
 def test_select_growth_keeps_one_per_cell_by_priority():
     xyz = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [1.5, 0.1, 0.1], [0.3, 0.1, 0.2], [2.5, 0, 0]])
     prio = np.array([1.0, 3.0, 2.0, 0.5, 0.1])
