@@ -8,9 +8,11 @@
 
 Writes the scenes to ``--out/<preset>/``, the contact sheet of each preset to
 ``experiments/results/benchmark_contact_sheet_<preset>.png`` and the timings to
-``experiments/results/make_benchmark.json``, and prints a Markdown table. ``--out/<preset>/`` is
-deleted first unless ``--resume``, which keeps its finished scenes and continues a stopped scene from
-its last rendered image (the same bytes as an uninterrupted run; the times are summed over sittings).
+``experiments/results/make_benchmark.json``, and prints a Markdown table. Each scene asked for is
+rendered again and replaces its folder (once it is complete); the other scenes already in
+``--out/<preset>/`` are kept. ``--resume`` keeps the finished scenes asked for as well and continues a
+stopped scene from its last rendered image (the same bytes as an uninterrupted run; the times are
+summed over sittings).
 """
 
 from __future__ import annotations
@@ -19,7 +21,6 @@ import argparse
 import json
 import os
 import platform
-import shutil
 from pathlib import Path
 
 from ne_jax.benchmark.generate import PRESETS, generate_benchmark, get_preset, list_variants
@@ -50,8 +51,6 @@ def main(argv=None) -> None:
     for name in args.presets:
         preset = get_preset(name)
         root = Path(args.out) / name
-        if root.exists() and not args.resume:
-            shutil.rmtree(root)
         report = generate_benchmark(root, preset, args.scenes, seed=args.seed,
                                     edits=() if args.originals_only else None, resume=args.resume)
         n_scenes = len(report["scenes"])
@@ -61,7 +60,7 @@ def main(argv=None) -> None:
                   + n_edits * (preset.train_views + preset.test_views))
         sheet = contact_sheet(root, RESULTS / f"benchmark_contact_sheet_{name}.png",
                               title=f"ne_jax procedural benchmark, preset {name!r} (test view at 45 degrees)")
-        size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+        size = sum(p.stat().st_size for scene in report["scenes"] for p in (root / scene).rglob("*") if p.is_file())
         rows[name] = {
             "resolution": preset.resolution,
             "supersample": preset.supersample,

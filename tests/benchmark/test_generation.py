@@ -208,3 +208,6 @@ def test_make_benchmark_originals_only_and_resume(tmp_path, monkeypatch, capsys)
     mb.main(["--preset", "tiny", "--out", str(out), "--scenes", "cup", "glossy", "--originals-only", "--resume"])
     assert (out / "tiny" / "cup" / "scene.json").stat().st_mtime_ns == stamp  # kept, not rendered again
     assert calls[0] == 6 and [v[:2] for v in list_variants(out / "tiny")] == [("cup", None), ("glossy", None)]
+    mb.main(["--preset", "tiny", "--out", str(out), "--scenes", "glossy", "--originals-only"])  # no --resume
+    assert calls[0] == 12  # glossy rendered again ...
+    assert (out / "tiny" / "cup" / "scene.json").stat().st_mtime_ns == stamp  # ... and cup, not asked for, kept
