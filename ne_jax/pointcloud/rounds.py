@@ -296,18 +296,17 @@ def prune_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, dict
     ``cfg.prune_max_fraction`` of the alive count (the least confident; ties by index), unless fewer
     than ``cfg.min_points`` would stay alive. Returns ``(points, report)``; ``pruned_over_cap``
     counts the points below the threshold that the cap kept."""
-    confidence = np.asarray(points.confidence)
-    low = (confidence < cfg.prune_threshold) & np.asarray(points.alive)
-    over = 0
+    alive, confidence = np.asarray(points.alive), np.asarray(points.confidence)
+    low = np.flatnonzero(alive & (confidence < cfg.prune_threshold))
+    capped = {}
     if cfg.prune_max_fraction is not None:
-        cap = int(np.floor(cfg.prune_max_fraction * int(np.asarray(points.alive).sum())))
-        candidates = np.flatnonzero(low)
-        over = max(0, candidates.size - cap)
-        if over:
-            low[:] = False
-            low[candidates[np.argsort(confidence[candidates], kind="stable")[:cap]]] = True
-    points, report = _guarded_removal(points, low, cfg.min_points, "pruned")
-    return points, {**report, **({"pruned_over_cap": over} if cfg.prune_max_fraction is not None else {})}
+        cap = int(np.floor(cfg.prune_max_fraction * alive.sum()))
+        capped["pruned_over_cap"] = max(0, low.size - cap)
+        low = low[np.argsort(confidence[low], kind="stable")[:cap]]
+    remove = np.zeros(points.capacity, bool)
+    remove[low] = True
+    points, report = _guarded_removal(points, remove, cfg.min_points, "pruned")
+    return points, {**report, **capped}
 
 
 def mean_neighbor_distance(xyz: np.ndarray, k: int) -> np.ndarray:
