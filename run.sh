@@ -7,7 +7,8 @@
 #                              does not fill two cores; a crashed worker ends the run instead of
 #                              being replaced, since xdist can wait forever on a replacement;
 #                              1 runs in-process; each on one host device,
-#                              NE_JAX_HOST_DEVICES=1 from tests/conftest.py), then, as a second process, the
+#                              NE_JAX_HOST_DEVICES=1 from tests/conftest.py; the 25 slowest tests
+#                              are listed at the end), then, as a second process, the
 #                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
 #                              the sharding tests on 4 forced host devices (pytest -m multidevice tests/devices),
 #                              the viewer in headless Chromium (pytest -m browser tests/view), then the
@@ -84,7 +85,7 @@ case "$cmd" in
     workers="${NE_JAX_TEST_WORKERS:-2}"
     xdist=()
     if [ "$workers" -gt 1 ]; then xdist=(-n "$workers" --dist loadfile --max-worker-restart 0); fi
-    .venv/bin/python -m pytest "${xdist[@]}" "$@"
+    .venv/bin/python -m pytest "${xdist[@]}" --durations=25 "$@"
     echo "run.sh: float64 step: JAX_ENABLE_X64=1 pytest tests/hard_cases" >&2
     JAX_ENABLE_X64=1 .venv/bin/python -m pytest tests/hard_cases -q
     echo "run.sh: multi-device step: 4 forced host devices, pytest -m multidevice tests/devices" >&2
