@@ -1,4 +1,5 @@
-"""Suite-wide settings: one host device per test process, and compiled programs freed per file.
+"""Suite-wide settings: one host device per test process, compiled programs freed per file, and
+programs compiled at XLA's optimisation level 0.
 
 ``import ne_jax`` gives JAX one host device per usable CPU core (:mod:`ne_jax._platform`). The
 suite keeps one: ``bash run.sh test`` runs two pytest-xdist workers on a 2-core machine, so a
@@ -15,6 +16,13 @@ tens of thousands of programs and reaches the kernel's limit on mappings per pro
 (``vm.max_map_count``, 65,530 by default); the next compile then crashes the worker (a segfault
 or an abort inside ``backend_compile_and_load``). So the compiled programs are dropped after
 each test file (:func:`jax.clear_caches`), which bounds a worker's mappings by one file's.
+
+Two thirds of the suite's time is compiling, and most of that is LLVM optimising code that then
+runs for milliseconds. So the tests compile with ``--xla_backend_optimization_level=0`` (XLA's
+default is 3), added to ``XLA_FLAGS`` unless it already names a level:
+``XLA_FLAGS=--xla_backend_optimization_level=3 bash run.sh test`` runs the suite as users' programs
+are compiled. Results agree to the tests' tolerances either way; comparisons of two programs bit
+for bit compile both at one level.
 """
 
 import gc
@@ -23,6 +31,8 @@ import os
 import pytest
 
 os.environ.setdefault("NE_JAX_HOST_DEVICES", "1")
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
 
 @pytest.fixture(autouse=True, scope="module")

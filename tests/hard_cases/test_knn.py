@@ -6,7 +6,9 @@ references of ``tests/geometry/reference.py`` on the same candidate sets.
 Tolerances (``common.TOL``): the neighbour sets must be equal unless the reference's K-th and
 (K+1)-th distances tie within ``1e3 eps`` relative (then the chosen distances must match); weights
 within ``TOL["weight"]`` absolute (float32 2e-6, float64 1e-12); interpolated and integrated values
-within ``TOL["interp"]`` (float32 2e-5, float64 1e-11) times the largest ``|value|``. Values and the
+within ``TOL["interp"]`` (float32 2e-5, float64 1e-11) times the largest ``|value|``; integrated
+values only on segments without such a tie (the integration ranks its own distances, and may take
+the other point of a tie). Values and the
 gradients with respect to positions, confidences, features and sample points are finite.
 """
 
@@ -74,12 +76,14 @@ def check(state, tree, pts, node, use, vals, nb, integrated=None, weight=None):
     for b in np.flatnonzero(use):
         cand = cand_all[node[b] - tree.first_candidate_node]
         f_int = np.zeros(feat.shape[1])
+        tied = False  # a sample of the segment with a tie at its K-th distance
         for s in range(S):
             q = np.asarray(pts[b, s], np.float64)
             ri, rw, gap = knn_reference(xyz, alive, conf, q, CFG.knn_k, eps, cand)
             got = dict(zip(idx[b, s][ok[b, s]].tolist(), w[b, s][ok[b, s]].tolist()))
             dk = np.linalg.norm(xyz[ri[-1]] - q) if ri.size else 0.0
             if gap <= 1e3 * EPS * (dk + eps):  # a tie at the K-th distance: either point is right
+                tied = True
                 gi = np.asarray(sorted(got), np.int64)
                 np.testing.assert_allclose(np.sort(np.linalg.norm(xyz[gi] - q, axis=1)),
                                            np.sort(np.linalg.norm(xyz[ri] - q, axis=1)),
@@ -95,7 +99,10 @@ def check(state, tree, pts, node, use, vals, nb, integrated=None, weight=None):
             if weight is not None:
                 f_int += float(weight[b, s]) * f_ref
             checked += 1
-        if integrated is not None:
+        # The integration ranks its own float32 distances: at a tie it may pick the other point (as a
+        # program compiled at another optimisation level rounds them differently), so tied segments
+        # are checked per sample above only.
+        if integrated is not None and not tied:
             np.testing.assert_allclose(np.asarray(integrated["feature"], np.float64)[b], f_int, rtol=0,
                                        atol=TOL["interp"] * fscale)
     return checked
