@@ -17,8 +17,8 @@ tens of thousands of programs and reaches the kernel's limit on mappings per pro
 or an abort inside ``backend_compile_and_load``). So the compiled programs are dropped after
 each test file (:func:`jax.clear_caches`), which bounds a worker's mappings by one file's.
 
-Two thirds of the suite's time is compiling, and most of that is LLVM optimising code that then
-runs for milliseconds. So the tests compile with ``--xla_backend_optimization_level=0`` (XLA's
+About 70% of the suite's time at XLA's default level is compiling, much of it LLVM optimising code
+that then runs for milliseconds. So the tests compile with ``--xla_backend_optimization_level=0`` (XLA's
 default is 3), added to ``XLA_FLAGS`` unless it already names a level:
 ``XLA_FLAGS=--xla_backend_optimization_level=3 bash run.sh test`` runs the suite as users' programs
 are compiled. Results agree to the tests' tolerances either way; comparisons of two programs bit
