@@ -1,5 +1,5 @@
-"""Suite-wide settings: one host device per test process, compiled programs freed per file, and
-programs compiled at XLA's optimisation level 0.
+"""Suite-wide settings: one host device per test process, compiled programs freed before a process
+runs out of memory mappings, and programs compiled at XLA's optimisation level 0.
 
 ``import ne_jax`` gives JAX one host device per usable CPU core (:mod:`ne_jax._platform`). The
 suite keeps one: ``bash run.sh test`` runs two pytest-xdist workers on a 2-core machine, so a
@@ -14,8 +14,11 @@ Every XLA:CPU executable holds a few memory mappings of its own, and JAX keeps e
 compiled for as long as the process lives. A worker that runs hundreds of test files compiles
 tens of thousands of programs and reaches the kernel's limit on mappings per process
 (``vm.max_map_count``, 65,530 by default); the next compile then crashes the worker (a segfault
-or an abort inside ``backend_compile_and_load``). So the compiled programs are dropped after
-each test file (:func:`jax.clear_caches`), which bounds a worker's mappings by one file's.
+or an abort inside ``backend_compile_and_load``). So after a test file that leaves the process
+holding more than half that limit, the compiled programs are dropped (:func:`jax.clear_caches`),
+which bounds a worker's mappings by half the limit plus one file's. Until then later files reuse
+what earlier ones compiled: on ten render/geometry files, 19% fewer compiles than clearing after
+every file.
 
 About 70% of the suite's time at XLA's default level is compiling, much of it LLVM optimising code
 that then runs for milliseconds. So the tests compile with ``--xla_backend_optimization_level=0`` (XLA's
@@ -35,11 +38,26 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
 
+def _mappings_near_the_limit() -> bool:
+    """Whether this process holds more than half the kernel's memory mappings per process (always
+    true where ``/proc`` cannot tell)."""
+    try:
+        limit = int(open("/proc/sys/vm/max_map_count").read())
+        with open("/proc/self/maps", "rb") as maps:
+            held = sum(1 for _ in maps)
+    except OSError:
+        return True
+    return held > limit // 2
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
-    """After each test file: drop JAX's compiled programs (and the memory mappings they hold)."""
+    """After a test file, when the process holds more than half its allowed memory mappings: drop
+    JAX's compiled programs (and the mappings they hold). Until then later files reuse the programs
+    earlier ones compiled (the small programs of eager array operations, above all)."""
     yield
-    import jax
+    if _mappings_near_the_limit():
+        import jax
 
-    jax.clear_caches()
-    gc.collect()
+        jax.clear_caches()
+        gc.collect()
