@@ -11,6 +11,7 @@ from experiments import density_gate_study
 from tests.mini_presets import TRAIN_SCENE
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_two_step_study_tables_both_configs(tmp_path):
     from ne_jax.benchmark.generate import generate_scene
 

@@ -27,6 +27,7 @@ def trained(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_floor_and_rows(trained, tmp_path, monkeypatch):
     monkeypatch.setattr(pixel_grid, "RESULTS", tmp_path)
     run = str(trained / "run")

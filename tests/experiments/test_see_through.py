@@ -13,6 +13,7 @@ from ne_jax.train.loop import train
 from tests.mini_presets import mini_benchmark, mini_run
 
 
+@pytest.mark.slow  # a study run end to end: -m slow
 def test_study_reports_the_crossings_and_each_margin(tmp_path, monkeypatch):
     bench = mini_benchmark(test_views=2)
     generate_scene("glossy", bench, tmp_path / "bench", seed=0, edits=[])
