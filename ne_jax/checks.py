@@ -33,6 +33,8 @@ is given; in the segment arrays of the render a row is a packed segment slot, no
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jax.experimental import checkify
@@ -74,11 +76,20 @@ def stage_check(enabled: bool, stage: str, *, where=None, **arrays) -> None:
             i = g - offset
             offset += a.size
             label = name + jax.tree_util.keystr(path)
-            checkify.check(
-                jnp.all(jnp.isfinite(a)),
-                f"non-finite value at stage '{stage}': {label}[shape {tuple(a.shape)}] first at flat index "
-                "{i} = {value}",
-                i=i, value=value)
+            message = (f"non-finite value at stage '{stage}': {label}[shape {tuple(a.shape)}] first at flat "
+                       "index {i} = {value}")
+            _check_finite(message, jnp.all(jnp.isfinite(a)), i, value)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _check_finite(message: str, ok, i, value) -> None:
+    """``checkify.check(ok, message, i=i, value=value)`` in a program of its own whose arguments are
+    ``ok``, ``i`` and ``value``. Building a check describes each formatting argument (JAX 0.10's
+    ``ShapeDtypeStruct.like`` reads a tracer's ``sharding``, and the tracer's ``AttributeError``
+    prints the equations of its program that read a constant); in the caller's trace those are whole
+    nested programs, most of the time a checked training step took to trace
+    (``python -m experiments.bench_checks``)."""
+    checkify.check(ok, message, i=i, value=value)
 
 
 def throw(err: checkify.Error) -> None:
