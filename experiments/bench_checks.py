@@ -6,9 +6,10 @@ Each round runs three child processes, in turn: the training step without checks
 checks as ``ne_jax.checks`` makes them (``on``: each ``checkify.check`` in a small program of its own,
 taking its formatting arguments as arguments), and with each check made in the caller's trace
 (``on_inline``: the reference, ``checkify.check`` called where the stage is checked). A child
-builds the inputs of ``experiments/profile_hot_path.py`` (100,000 points on the glossy surface, a
-2,048-ray training batch; ``--quick``: 20,000 points), then times the step's first call, split into
-tracing, lowering and compiling (JAX's monitoring events), and the best of ``--steps`` further calls.
+builds the training step of ``experiments/profile_hot_path.py`` with ``checks`` set
+(``whole_calls``: 100,000 points on the glossy surface, a 2,048-ray training batch; ``--quick``:
+20,000 points), then times the step's first call, split into tracing, lowering and compiling (JAX's
+monitoring events), and the best of ``--steps`` further calls.
 The best of the rounds is tabled, with ratios against ``on_inline`` and ``off``; the loss must
 agree to 1e-5 (relative) in every setting.
 
@@ -27,7 +28,7 @@ import time
 from pathlib import Path
 
 from experiments.common import command, commit, write_results
-from experiments.profile_hot_path import TRAIN_RAYS, build_inputs
+from experiments.profile_hot_path import CONFIG, whole_calls
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SETTINGS = ("off", "on", "on_inline")
@@ -40,39 +41,29 @@ def measure(setting: str, steps: int, quick: bool) -> dict:
     """The first call of the (un)checked training step, by phase, and the best of ``steps`` more."""
     import jax
     import jax.monitoring
-    import jax.numpy as jnp
     import numpy as np
     from jax.experimental import checkify
 
     import ne_jax.checks
-    from ne_jax.train.sampler import Batch
-    from ne_jax.train.state import init_train_state
-    from ne_jax.train.step import make_train_step
-
+    from ne_jax.train.run import get_run_preset
 
     if setting == "on_inline":
         def inline(message, ok, i, value):
             checkify.check(ok, message, i=i, value=value)
 
         ne_jax.checks._check_finite = inline
-
-    run, scene, _, trays, _, _ = build_inputs(quick)
-    cfg = run.train_render.replace(checks=setting != "off")
-    train_scene = scene.fitted(cfg, trays)
-    bg = jnp.ones(3)
-    state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
-    batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
-                  background=bg)
-    step = make_train_step(run.train, cfg)
+    run = get_run_preset(CONFIG)
+    run = run.replace(render=run.render.replace(checks=setting != "off"))
+    _, step, state, _ = whole_calls(quick, run)
     seconds = collections.Counter()
     jax.monitoring.register_event_duration_secs_listener(lambda e, d, **kw: seconds.update({e: d}))
     t0 = time.perf_counter()
-    _, metrics = jax.block_until_ready(step(state, train_scene, batch))
+    _, metrics = jax.block_until_ready(step(state))
     first = time.perf_counter() - t0
     times = []
     for _ in range(steps):
         t0 = time.perf_counter()
-        jax.block_until_ready(step(state, train_scene, batch))
+        jax.block_until_ready(step(state))
         times.append(time.perf_counter() - t0)
     return {"setting": setting, "first_call_s": first, **{k: seconds[v] for k, v in EVENTS.items()},
             "step_ms": 1e3 * min(times), "loss": float(np.asarray(metrics["loss/total"])),

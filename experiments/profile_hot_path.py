@@ -139,10 +139,11 @@ def build_inputs(quick: bool, run=None):
     return run, scene, render_rays, train_rays, build_s, float(np.mean(hits))
 
 
-def whole_calls(quick: bool):
+def whole_calls(quick: bool, run=None):
     """The whole render of the render batch and the whole training step on the training batch
-    (:func:`build_inputs`), with whatever ``ne_jax`` is importable: ``(render, step, state, new_api)``
-    with ``render(state) -> RenderOut``, ``step(state) -> (state, metrics)`` and the initial state."""
+    (:func:`build_inputs`; ``run``: a RunConfig in place of the ``default`` preset), with whatever
+    ``ne_jax`` is importable: ``(render, step, state, new_api)`` with ``render(state) -> RenderOut``,
+    ``step(state) -> (state, metrics)`` and the initial state."""
     import jax
     import jax.numpy as jnp
 
@@ -151,7 +152,7 @@ def whole_calls(quick: bool):
     from ne_jax.train.state import init_train_state
     from ne_jax.train.step import make_train_step
 
-    run, scene, rrays, trays, _, _ = build_inputs(quick)
+    run, scene, rrays, trays, _, _ = build_inputs(quick, run)
     new_api = _new_api()
     if new_api:  # the packing budget, as training fits it: on the training step's scene
         cfg = getattr(run, "train_render", run.render)  # a reference from before the training grid has none

@@ -30,6 +30,7 @@ for bit compile both at one level.
 
 import gc
 import os
+from pathlib import Path
 
 import pytest
 
@@ -42,7 +43,7 @@ def _mappings_near_the_limit() -> bool:
     """Whether this process holds more than half the kernel's memory mappings per process (always
     true where ``/proc`` cannot tell)."""
     try:
-        limit = int(open("/proc/sys/vm/max_map_count").read())
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
         with open("/proc/self/maps", "rb") as maps:
             held = sum(1 for _ in maps)
     except OSError:
