@@ -7,8 +7,9 @@
 #                              does not fill two cores; a crashed worker ends the run instead of
 #                              being replaced, since xdist can wait forever on a replacement;
 #                              1 runs in-process; each on one host device,
-#                              NE_JAX_HOST_DEVICES=1 from tests/conftest.py, programs compiled at
-#                              XLA's optimisation level 0 (also conftest.py); the 25 slowest tests
+#                              NE_JAX_HOST_DEVICES=1 from tests/conftest.py, programs compiled for
+#                              compile speed (XLA's optimisation level 0 and loop emitters, also
+#                              conftest.py); the 25 slowest tests
 #                              are listed at the end), then, as a second process, the
 #                              hard-case suite again in float64 (JAX_ENABLE_X64=1 pytest tests/hard_cases),
 #                              the sharding tests on 4 forced host devices (pytest -m multidevice tests/devices),

@@ -1,5 +1,6 @@
 """Suite-wide settings: one host device per test process, compiled programs freed before a process
-runs out of memory mappings, and programs compiled at XLA's optimisation level 0.
+runs out of memory mappings, and programs compiled for compile speed (XLA's optimisation level 0,
+loop emitters).
 
 ``import ne_jax`` gives JAX one host device per usable CPU core (:mod:`ne_jax._platform`). The
 suite keeps one: ``bash run.sh test`` runs two pytest-xdist workers on a 2-core machine, so a
@@ -20,12 +21,14 @@ which bounds a worker's mappings by half the limit plus one file's. Until then l
 what earlier ones compiled: on ten render/geometry files, 19% fewer compiles than clearing after
 every file.
 
-About 70% of the suite's time at XLA's default level is compiling, much of it LLVM optimising code
-that then runs for milliseconds. So the tests compile with ``--xla_backend_optimization_level=0`` (XLA's
-default is 3), added to ``XLA_FLAGS`` unless it already names a level:
-``XLA_FLAGS=--xla_backend_optimization_level=3 bash run.sh test`` runs the suite as users' programs
-are compiled. Results agree to the tests' tolerances either way; comparisons of two programs bit
-for bit compile both at one level.
+About 70% of the suite's time at XLA's default settings is compiling, much of it making fast code
+that then runs for milliseconds. So the tests compile with ``--xla_backend_optimization_level=0``
+(XLA's default is 3) and with XLA:CPU's loop emitters instead of its MLIR fusion emitters
+(``--xla_cpu_use_fusion_emitters=false``), each added to ``XLA_FLAGS`` unless it already names that
+flag: ``XLA_FLAGS="--xla_backend_optimization_level=3 --xla_cpu_use_fusion_emitters=true" bash run.sh
+test`` runs the suite as users' programs are compiled. ``experiments/bench_xla_emitters.py`` prices
+both flags on a ``default`` render and training step. Results agree to the tests' tolerances either
+way; comparisons of two programs bit for bit compile both with the same flags.
 """
 
 import gc
@@ -35,8 +38,10 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("NE_JAX_HOST_DEVICES", "1")
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+_COMPILE_FAST = {"xla_backend_optimization_level": "0", "xla_cpu_use_fusion_emitters": "false"}
+for _flag, _value in _COMPILE_FAST.items():
+    if _flag not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" --{_flag}={_value}").strip()
 
 
 def _mappings_near_the_limit() -> bool:
