@@ -26,6 +26,8 @@ from tests.render.scenes import glossy_model
 
 RES = 24
 BG = jnp.array([1.0, 1.0, 1.0])
+render = jax.jit(render_rays, static_argnums=0)
+"""``render_rays`` as one compiled program (called eagerly it compiles each of its operations)."""
 
 
 @pytest.fixture(scope="module")
@@ -61,11 +63,11 @@ def test_packing_changes_nothing_and_drops_are_counted_then_grown(setup):
     def budget(b):
         return scene.replace(capacities=scene.capacities.replace(segments_per_ray=b))
 
-    full = render_rays(cfg, params, budget(None), rays, BG)
-    packed = render_rays(cfg, params, budget(8.0), rays, BG)
+    full = render(cfg, params, budget(None), rays, BG)
+    packed = render(cfg, params, budget(8.0), rays, BG)
     np.testing.assert_allclose(np.asarray(packed.rgb), np.asarray(full.rgb), atol=1e-6)
     assert int(packed.lost.packing.sum()) == 0
-    starved = render_rays(cfg, params, budget(0.05), rays, BG)
+    starved = render(cfg, params, budget(0.05), rays, BG)
     lost = int(starved.lost.packing.sum())
     assert lost > 0 and int(starved.num_segments.sum()) + lost == int(full.num_segments.sum())
     assert int(starved.lost.frontier.sum()) == 0 and int(starved.lost.slots.sum()) == 0
@@ -80,9 +82,9 @@ def test_traversal_overflow_is_reported_then_grown(setup):
     def slots(m):
         return scene.replace(capacities=scene.capacities.replace(max_segments=m))
 
-    out = render_rays(cfg, params, slots(2), rays, BG)
+    out = render(cfg, params, slots(2), rays, BG)
     assert int(out.lost.slots.max()) > 0
-    ref = render_rays(cfg, params, slots(64), rays, BG)
+    ref = render(cfg, params, slots(64), rays, BG)
     grown = render_chunked(cfg.replace(chunk=RES * RES), params, slots(2), rays, BG, max_grow=6)
     assert int(grown.lost.count.max()) == 0
     np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(ref.rgb), atol=1e-6)
@@ -94,21 +96,21 @@ def test_undeclared_effects_are_not_computed(setup):
     cfg, params, scene, camera, _ = setup
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     poisoned = scene.replace(points=scene.points.replace(ist=jnp.full_like(scene.points.ist, jnp.nan)))
-    out = render_rays(cfg, params, poisoned, rays, BG)  # tiny preset: IST not declared
+    out = render(cfg, params, poisoned, rays, BG)  # tiny preset: IST not declared
     assert np.isfinite(np.asarray(out.rgb)).all()
     diffuse = cfg.with_effects(specular=False)
     p_diffuse = init_color_model(diffuse.shading, jax.random.key(0))
     no_normals = poisoned.replace(points=poisoned.points.replace(normal=jnp.full_like(scene.points.normal, jnp.nan)))
-    assert np.isfinite(np.asarray(render_rays(diffuse, p_diffuse, no_normals, rays, BG).rgb)).all()
+    assert np.isfinite(np.asarray(render(diffuse, p_diffuse, no_normals, rays, BG).rgb)).all()
     # and the declared effect does read them
-    assert not np.isfinite(np.asarray(render_rays(cfg.with_effects(ist=True), params, poisoned, rays, BG).rgb)).all()
+    assert not np.isfinite(np.asarray(render(cfg.with_effects(ist=True), params, poisoned, rays, BG).rgb)).all()
 
 
 def test_identity_ist_renders_like_no_ist(setup):
     cfg, params, scene, camera, _ = setup
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
-    a = render_rays(cfg, params, scene, rays, BG)
-    b = render_rays(cfg.with_effects(ist=True), params, scene, rays, BG)
+    a = render(cfg, params, scene, rays, BG)
+    b = render(cfg.with_effects(ist=True), params, scene, rays, BG)
     # KNN-weighted means of identities are identity up to rounding of the weights' sum.
     np.testing.assert_allclose(np.asarray(b.rgb), np.asarray(a.rgb), atol=2e-6)
 
@@ -127,7 +129,7 @@ def test_gradients_are_finite_and_reach_everything(setup):
         return jnp.mean((out.rgb - target) ** 2)
 
     p = scene.points
-    grads = jax.grad(loss, argnums=(0, 1, 2, 3, 4))(params, p.xyz, p.feature, p.conf_logit, rays.origin)
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3, 4)))(params, p.xyz, p.feature, p.conf_logit, rays.origin)
     for g in jax.tree_util.tree_leaves(grads):
         assert np.isfinite(np.asarray(g)).all()
     g_params, g_xyz, g_feat, g_conf, g_origin = grads
@@ -157,7 +159,7 @@ def test_stochastic_rule_needs_a_key_and_no_chunked_render(setup):
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR).take(slice(0, 16))
     with pytest.raises(ValueError, match="PRNG key"):
         render_rays(sto, params, scene, rays, BG)
-    out = render_rays(sto, params, scene, rays, BG, key=jax.random.key(3))
+    out = render(sto, params, scene, rays, BG, key=jax.random.key(3))
     assert np.isfinite(np.asarray(out.rgb)).all()
     with pytest.raises(ValueError, match="stochastic"):
         render_chunked(sto, params, scene, rays, BG)
@@ -177,7 +179,7 @@ def test_rays_that_miss_everything_are_background(setup):
     rays = Rays(origin=jnp.array([[10.0, 10.0, 10.0], [0.0, 0.0, 5.0]]),
                 direction=jnp.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
                 near=jnp.array([0.0, 0.0]), far=jnp.array([10.0, 10.0]))
-    out = render_rays(cfg, params, scene, rays, jnp.array([0.2, 0.4, 0.6]))
+    out = render(cfg, params, scene, rays, jnp.array([0.2, 0.4, 0.6]))
     np.testing.assert_array_equal(np.asarray(out.rgb), np.float32([[0.2, 0.4, 0.6]] * 2))
     np.testing.assert_array_equal(np.asarray(out.opacity), [0.0, 0.0])
 
@@ -210,7 +212,7 @@ def test_chunked_render_equals_one_call(setup):
     cfg, params, scene, camera, _ = setup
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     bg = jax.random.uniform(jax.random.key(4), (rays.num_rays, 3))
-    ref = render_rays(cfg, params, scene.replace(capacities=scene.capacities.replace(segments_per_ray=None)), rays, bg)
+    ref = render(cfg, params, scene.replace(capacities=scene.capacities.replace(segments_per_ray=None)), rays, bg)
     narrow = scene.replace(capacities=scene.capacities.replace(first_pass_frontier=2))  # most hit rays walk twice
     out = render_chunked(cfg.replace(chunk=64), params, narrow, rays, bg)
     assert int(out.lost.count.sum()) == 0 and int(ref.lost.count.sum()) == 0
