@@ -32,23 +32,43 @@ from ne_jax.train.sampler import build_pool
 
 from tests.mini_presets import MINI_CAPS, TRAIN_SCENE, mini_run
 
+RUN = mini_run(sampler=mini_run().sampler.replace(batch_size=126), capacities=MINI_CAPS.replace(segments_per_ray=8.0))
+"""The module's run: :func:`mini_run` (3 epochs x 3 steps, rounds after epochs 1 and 2) on batches of
+126 rays, which no 2 x 2 grid divides (the pixel-grid test trains on them), with a packing budget of 8
+segments a ray from the start. A run that keeps its training config, batch and capacities, on a
+cloud of the same capacity (every carving here keeps 1,500 points), reuses the training step
+compiled for ``full_run``."""
+
+
+def keeping_the_step(run):
+    """``run`` with :data:`RUN`'s training config, its schedule included, whatever ``run``'s length:
+    ``train`` then reuses the step compiled for ``full_run`` (the step compiles per training config)."""
+    return run.replace(train=RUN.train)
+
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")
-    generate_scene("blocks", TRAIN_SCENE, root, seed=0)
+    generate_scene("blocks", TRAIN_SCENE, root, seed=0, edits=())
     return root / "blocks"
 
 
 @pytest.fixture(scope="module")
 def full_run(scene_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "full"
-    return train(mini_run(), scene_dir, out, progress=False, log=lambda s: None)
+    return train(RUN, scene_dir, out, progress=False, log=lambda s: None)
 
 
 def _pool(result, run):
     scene_dir = json.loads((result.run_dir / "metrics.json").read_text())["scene_dir"]
     return build_pool(run.sampler, load_split(scene_dir, "train"), "white")
+
+
+def _scan_rays(result):
+    """``(pool, rays)``: the run's ray pool and a chunk of a round's growth scan from it
+    (``rounds.grow_chunk`` rays, the shape the rounds of ``full_run`` compiled the scan for)."""
+    pool = _pool(result, RUN)
+    return pool, sample_batch(RUN.sampler.replace(batch_size=RUN.rounds.grow_chunk), pool, jax.random.key(1)).rays
 
 
 def _same_state(a, b):
@@ -81,10 +101,10 @@ def test_run_directory_history_and_no_recompile_within_an_epoch(full_run):
 
 def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
     out = tmp_path / "resumed"
-    first = train(mini_run(), scene_dir, out, progress=False, log=lambda s: None, stop_after_epoch=1)
+    first = train(RUN, scene_dir, out, progress=False, log=lambda s: None, stop_after_epoch=1)
     assert int(first.state.step) == 3
     assert first.history[0]["compiles"] == 0  # the step compiled for full_run is reused in this process
-    second = train(mini_run(), scene_dir, out, progress=False, log=lambda s: None)
+    second = train(RUN, scene_dir, out, progress=False, log=lambda s: None)
     assert [e["epoch"] for e in second.history] == [1, 2, 3]
     _same_state(second.state, full_run.state)
     np.testing.assert_array_equal(np.asarray(second.scene.points.xyz), np.asarray(full_run.scene.points.xyz))
@@ -105,7 +125,7 @@ def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
 
 
 def test_resuming_a_run_of_another_config_names_the_fields(full_run, scene_dir):
-    other = mini_run(train=TrainConfig(lr=1e-3, total_steps=9))
+    other = RUN.replace(train=TrainConfig(lr=1e-3, total_steps=9))
     with pytest.raises(CheckpointError, match=r"train\.lr"):
         train(other, scene_dir, full_run.run_dir, progress=False, log=lambda s: None)
 
@@ -114,7 +134,7 @@ def test_a_restart_removes_the_earlier_runs_checkpoints(full_run, scene_dir, tmp
     out = tmp_path / "again"
     shutil.copytree(full_run.run_dir, out)
     lines = []
-    again = train(mini_run(), scene_dir, out, resume=False, progress=False, log=lines.append, stop_after_epoch=1)
+    again = train(RUN, scene_dir, out, resume=False, progress=False, log=lines.append, stop_after_epoch=1)
     assert int(again.state.step) == 3 and [e["epoch"] for e in again.history] == [1]
     assert any("removed the earlier run's checkpoints" in line for line in lines)
     steps = sorted(p.name for p in (out / "checkpoints").iterdir() if p.is_dir())
@@ -139,11 +159,12 @@ def test_training_counts_traversal_losses_and_saves_the_capacities(scene_dir, tm
     frontier nodes and segment slots, each epoch's record says how many and which capacities were in
     force, and the traversal is not grown in training (``TRAINING_GROWS``: only the packing
     budget); the model comes back with the capacities it ended with."""
-    starved = mini_run(epochs=2, round_epochs=(1, 0), capacities=MINI_CAPS.replace(frontier=2, max_segments=2))
-    assert config_key(starved) == config_key(mini_run(epochs=2, round_epochs=(1, 0)))
+    starved = RUN.replace(epochs=2, round_epochs=(1, 0), capacities=MINI_CAPS.replace(frontier=2, max_segments=2))
+    assert config_key(starved) == config_key(RUN.replace(epochs=2, round_epochs=(1, 0)))
     model = train(starved, scene_dir, tmp_path / "starved", progress=False, log=lambda s: None)
+    assert len(model.history) == 2
     for e in model.history:
-        assert e["lost"]["frontier"] > 0 and e["lost"]["slots"] > 0 and e["lost"]["rays"] == 3 * 128
+        assert e["lost"]["frontier"] > 0 and e["lost"]["slots"] > 0 and e["lost"]["rays"] == 3 * RUN.sampler.batch_size
         assert e["capacities"]["frontier"] == 2 and e["capacities"]["max_segments"] == 2
     assert TRAINING_GROWS == ("packing",)
     assert load_trained(model.run_dir).scene.capacities == model.scene.capacities
@@ -153,7 +174,7 @@ def test_empty_masks_fail_before_anything_is_written(scene_dir, tmp_path):
     split = load_split(scene_dir, "train")
     empty = dataclasses.replace(split, images=np.zeros_like(split.images))
     with pytest.raises(ValueError, match="no foreground"):
-        train(mini_run(), scene_dir, tmp_path / "run", split=empty, progress=False, log=lambda s: None)
+        train(RUN, scene_dir, tmp_path / "run", split=empty, progress=False, log=lambda s: None)
     assert not (tmp_path / "run").exists()
 
 
@@ -163,21 +184,24 @@ def test_a_scene_with_one_view_trains(scene_dir, tmp_path):
                               image_paths=split.image_paths[:1])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = train(mini_run(epochs=1), scene_dir, tmp_path / "one", split=one, progress=False,
-                    log=lambda s: None)
+        res = train(RUN.replace(round_epochs=(1, 0)), scene_dir, tmp_path / "one", split=one, progress=False,
+                    log=lambda s: None, stop_after_epoch=1)
     assert any("min_views" in str(w.message) for w in caught)
     assert int(res.state.step) == 3 and np.isfinite(res.history[-1]["loss/total"])
 
 
 def test_training_batches_take_the_samplers_grid_and_images_the_renders(scene_dir, tmp_path):
     """``sampler.pixel_samples = 1`` under a render grid of 2: the batches hold single rays (126 rays,
-    which no 2 x 2 grid divides, train), and the model trains as the one-ray config does."""
-    one = mini_run(epochs=1, round_epochs=(1, 0), sampler=mini_run().sampler.replace(batch_size=126))
+    which no 2 x 2 grid divides, train), and the model trains as the one-ray config does (an epoch of
+    3 steps each)."""
+    one = RUN.replace(round_epochs=(1, 0))
     grid = one.replace(render=one.render.replace(pixel_samples=2), sampler=one.sampler.replace(pixel_samples=1))
+    assert one.sampler.batch_size == 126
     assert grid.train_render == one.render and one.train_render is one.render
     assert one.replace(render=one.render.replace(pixel_samples=2)).train_render.pixel_samples == 2
-    runs = [train(r, scene_dir, tmp_path / name, progress=False, log=lambda s: None)
+    runs = [train(r, scene_dir, tmp_path / name, progress=False, log=lambda s: None, stop_after_epoch=1)
             for name, r in (("one", one), ("grid", grid))]
+    assert [int(r.state.step) for r in runs] == [3, 3]
     for a, b in zip(jax.tree_util.tree_leaves(runs[0].state.params), jax.tree_util.tree_leaves(runs[1].state.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(ValueError, match="SamplerConfig.pixel_samples"):
@@ -191,8 +215,8 @@ def test_the_host_waits_for_every_inflight_steps_th_step(scene_dir, tmp_path, mo
     real = jax.block_until_ready
     monkeypatch.setattr(loop.jax, "block_until_ready", lambda x: waited.append(x) or real(x))
     steps = 2 * INFLIGHT_STEPS + 3
-    res = train(mini_run(epochs=1, steps_per_epoch=steps, round_epochs=(1, 0), log_every=1000), scene_dir,
-                tmp_path / "r", progress=False, log=lambda s: None)
+    run = keeping_the_step(RUN.replace(epochs=1, steps_per_epoch=steps, round_epochs=(1, 0), log_every=1000))
+    res = train(run, scene_dir, tmp_path / "r", progress=False, log=lambda s: None)
     assert int(res.state.step) == steps
     assert len(waited) == steps // INFLIGHT_STEPS and all(np.ndim(w) == 0 for w in waited)  # the step's loss
 
@@ -201,7 +225,7 @@ def test_the_host_waits_for_every_inflight_steps_th_step(scene_dir, tmp_path, mo
 
 
 def test_growth_past_capacity_reallocates_and_the_step_runs_on_the_new_shapes(full_run):
-    run = mini_run()
+    run = RUN
     points = full_run.scene.points
     free = int(points.capacity - np.asarray(points.alive).sum())
     n = free + 50
@@ -266,9 +290,8 @@ def test_select_growth_keeps_one_per_cell_by_priority():
 
 
 def test_scan_growth_candidates_lie_in_gaps_and_are_finite(full_run):
-    run = mini_run()
-    pool = _pool(full_run, run)
-    rays = sample_batch(run.sampler, pool, jax.random.key(1)).rays
+    run = RUN
+    pool, rays = _scan_rays(full_run)
     scene = full_run.scene
     scan = jax.device_get(scan_growth(run.render, full_run.state.params, scene, rays, pool.background, 1.0, 0.0))
     for k in ("xyz", "feature", "sigma", "error"):
@@ -285,9 +308,8 @@ def test_scan_growth_candidates_lie_in_gaps_and_are_finite(full_run):
 def test_scan_growth_runs_under_the_runtime_checks(full_run):
     """With ``checks`` on, the scan runs under checkify (a plain jit refuses the stage checks) and
     finds what it finds without them."""
-    run = mini_run()
-    pool = _pool(full_run, run)
-    rays = sample_batch(run.sampler, pool, jax.random.key(1)).rays
+    run = RUN
+    pool, rays = _scan_rays(full_run)
     args = (full_run.state.params, full_run.scene, rays, pool.background, 1.0, 0.0)
     plain = jax.device_get(scan_growth(run.render, *args))
     checked_scan = jax.device_get(scan_growth(run.render.replace(checks=True), *args))
