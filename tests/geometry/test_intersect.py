@@ -1,6 +1,11 @@
 """intersect: the same minimal voxels as the float64 recursive reference on the issue's hard rays
 and degenerate clouds; overflow is counted and the host helper re-allocates; scale equivariance;
-finite gradients; no recompilation."""
+finite gradients; no recompilation.
+
+Every tree here has depth 10 and 1024 point slots and every batch :data:`NUM_RAYS` rays, so the
+tests share a few compiled traversals (one per set of capacities)."""
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -15,9 +20,18 @@ from tests.mini_presets import tiny_caps, tiny_tree
 from .clouds import CLOUDS, hard_rays, make_rays, padded, sphere
 from .reference import minimal_voxels, slab64
 
-CFG = tiny_tree()
+CFG = tiny_tree(depth=10)
 CAPS = tiny_caps()
 WIDE = Capacities(frontier=64, max_segments=32)
+TWO_PASS = WIDE.replace(first_pass_frontier=2, retry_share=1.0)
+NUM_RAYS = 170
+"""Rays per batch: the hard rays of four boxes (:func:`hard_case`)."""
+
+
+def walk(tree, rays, cfg, caps):
+    """:func:`intersect` called as :func:`intersect_checked` calls it (``include_grow_level`` given),
+    so the two share a compiled program."""
+    return intersect(tree, rays, cfg, caps, False)
 
 
 def compare(tree, rays, seg, cfg, include_grow=False, max_ambiguous=0.05):
@@ -53,14 +67,17 @@ def compare(tree, rays, seg, cfg, include_grow=False, max_ambiguous=0.05):
     return o.shape[0] - skipped
 
 
-def hard_case(name):
-    """``(tree, rays, cfg)``: the padded cloud ``name``'s tree and its hard rays, at one depth for
-    every cloud (with :data:`WIDE` capacities one compilation serves them all)."""
+def hard_case(name, seed=0):
+    """``(tree, rays, cfg)``: the padded cloud ``name``'s tree and its hard rays of four boxes, at one
+    depth for every cloud; a cloud with fewer boxes gets more random rays, up to :data:`NUM_RAYS`
+    (one compilation per set of capacities serves every cloud)."""
     xyz, alive = padded(name)
-    cfg = CFG.replace(depth=10)
-    tree = build_tree(xyz, alive, cfg)
-    o, d = hard_rays(tree, xyz, alive, n_boxes=4)
-    return tree, make_rays(o, d), cfg
+    tree = build_tree(xyz, alive, CFG)
+    o, d = hard_rays(tree, xyz, alive, seed=seed, n_boxes=4)
+    if len(o) < NUM_RAYS:
+        o, d = hard_rays(tree, xyz, alive, seed=seed, n_boxes=4, n_random=24 + NUM_RAYS - len(o))
+    assert len(o) == NUM_RAYS, len(o)
+    return tree, make_rays(o, d), CFG
 
 
 @pytest.mark.parametrize("name", sorted(CLOUDS))
@@ -74,7 +91,9 @@ def test_matches_reference_on_hard_rays(name):
 
 
 def test_axis_parallel_zero_signs_agree():
-    xyz, alive = CLOUDS["sphere_700"]
+    """Four copies of a ray in a box's face plane, with every sign of zero in its direction (tiled
+    to a full batch): the same segments."""
+    xyz, alive = padded("sphere_700")
     tree = build_tree(xyz, alive, CFG)
     g = 2 ** (tree.depth - 1) - 1 + int(np.flatnonzero(np.asarray(tree.valid)[2 ** (tree.depth - 1) - 1 :])[0])
     c = 0.5 * (np.asarray(tree.lo[g]) + np.asarray(tree.hi[g]))
@@ -82,7 +101,7 @@ def test_axis_parallel_zero_signs_agree():
     o = np.stack([np.array([c[0], lo[1], c[2]], np.float32) - np.array([5, 0, 0], np.float32)] * 4)
     d = np.array([[1, 0.0, 0.0], [1, -0.0, 0.0], [1, 0.0, -0.0], [1, -0.0, -0.0]], np.float32)
     assert np.signbit(d[1, 1]) and np.signbit(d[3, 2])
-    seg = intersect(tree, make_rays(o, d), CFG, CAPS)
+    seg = walk(tree, make_rays(np.resize(o, (NUM_RAYS, 3)), np.resize(d, (NUM_RAYS, 3))), CFG, CAPS)
     for f in ("node", "t_lo", "t_hi", "valid"):
         a = np.asarray(getattr(seg, f))
         assert np.all(a == a[0]), f
@@ -125,21 +144,19 @@ def test_slab_exact_cases():
 
 @pytest.mark.parametrize("factor, exact", [(1024.0, True), (1 / 1024.0, True), (1e3, False), (1e-3, False)])
 def test_scale_equivariance(factor, exact):
-    xyz = sphere(700, seed=2)
-    alive = np.ones(len(xyz), bool)
+    xyz, alive = padded("sphere_700")
     tree = build_tree(xyz, alive, CFG)
-    o, d = hard_rays(tree, xyz, alive, seed=4)
+    o, d = hard_rays(tree, xyz, alive, seed=4, n_boxes=4)
     if not exact:
         # Rays placed exactly on box faces / edges of the unscaled tree are not on them after an
-        # inexact scaling: compare the generic rays (aimed at points, starting inside boxes).
-        o, d = hard_rays(tree, xyz, alive, seed=4, n_random=120)
-        keep = np.r_[np.arange(0, 0), np.arange(len(o) - 120, len(o))]
-        o, d = o[keep], d[keep]
+        # inexact scaling: compare the generic rays (aimed at points).
+        o, d = hard_rays(tree, xyz, alive, seed=4, n_boxes=4, n_random=NUM_RAYS)
+        o, d = o[-NUM_RAYS:], d[-NUM_RAYS:]
     xs = (xyz.astype(np.float64) * factor).astype(np.float32)
     tree_s = build_tree(xs, alive, CFG)
     far = 1e3
-    seg = intersect(tree, make_rays(o, d, far=far), CFG, CAPS)
-    seg_s = intersect(tree_s, make_rays(o.astype(np.float64) * factor, d, far=far * factor), CFG, CAPS)
+    seg = walk(tree, make_rays(o, d, far=far), CFG, CAPS)
+    seg_s = walk(tree_s, make_rays(o.astype(np.float64) * factor, d, far=far * factor), CFG, CAPS)
     assert int(jnp.max(seg.overflow)) == 0 and int(jnp.max(seg_s.overflow)) == 0
     same = np.all((np.asarray(seg.node) == np.asarray(seg_s.node)) & (np.asarray(seg.valid) == np.asarray(seg_s.valid)),
                   axis=1)
@@ -154,20 +171,19 @@ def test_scale_equivariance(factor, exact):
 
 
 def test_overflow_counted_and_retry_reallocates():
-    xyz, alive = CLOUDS["sphere_700"]
-    tree = build_tree(xyz, alive, CFG)
-    o, d = hard_rays(tree, xyz, alive, seed=1)
-    rays = make_rays(o, d)
-    small = Capacities(frontier=4, max_segments=2)
-    seg = intersect(tree, rays, CFG, small)
+    """8 frontier nodes and 4 segment slots lose nodes and segments on the sphere's hard rays; one
+    growth step holds them all."""
+    tree, rays, cfg = hard_case("sphere_700")
+    small = Capacities(frontier=8, max_segments=4)
+    seg = walk(tree, rays, cfg, small)
     assert int(jnp.max(seg.frontier_overflow)) > 0 and int(jnp.max(seg.segment_overflow)) > 0
     # never silent: every ray whose reference list is longer than what came back reports overflow
-    full, cap = intersect_checked(tree, rays, CFG, small)
-    assert cap.frontier > 4 and cap.max_segments > 2
+    full, cap = intersect_checked(tree, rays, cfg, small)
+    assert cap.frontier > small.frontier and cap.max_segments > small.max_segments
     lost = np.asarray(full.num_segments) > np.asarray(seg.num_segments)
     assert np.all(np.asarray(seg.overflow)[lost] > 0)
     np.testing.assert_array_equal(np.asarray(seg.lost().count), np.asarray(seg.overflow))
-    compare(tree, rays, full, CFG)
+    compare(tree, rays, full, cfg)
 
 
 SEG_FIELDS = ("t_lo", "t_hi", "node", "level", "valid", "frontier_overflow", "segment_overflow", "num_emitted")
@@ -176,26 +192,26 @@ SEG_FIELDS = ("t_lo", "t_hi", "node", "level", "valid", "frontier_overflow", "se
 @pytest.mark.parametrize("name", ["sphere_700", "coplanar", "random_300"])
 def test_two_pass_equals_one_wide_pass(name):
     tree, rays, cfg = hard_case(name)
-    one = intersect(tree, rays, cfg, WIDE)
+    one = walk(tree, rays, cfg, WIDE)
     assert int(jnp.max(one.frontier_overflow)) == 0
-    narrow = intersect(tree, rays, cfg, WIDE.replace(frontier=2))
+    narrow = walk(tree, rays, cfg, WIDE.replace(frontier=2))
     assert int(jnp.sum(narrow.frontier_overflow > 0)) > 0  # the second pass has rays to walk again
-    two = intersect(tree, rays, cfg, WIDE.replace(first_pass_frontier=2, retry_share=1.0))
+    two = walk(tree, rays, cfg, TWO_PASS)
     for f in SEG_FIELDS:
         np.testing.assert_array_equal(np.asarray(getattr(two, f)), np.asarray(getattr(one, f)), err_msg=f)
 
 
 def test_two_pass_beyond_the_retry_share_is_counted():
-    xyz, alive = CLOUDS["sphere_700"]
-    tree = build_tree(xyz, alive, CFG)
-    o, d = hard_rays(tree, xyz, alive, seed=1)
-    rays = make_rays(o, d)
-    one, narrow = intersect(tree, rays, CFG, WIDE), intersect(tree, rays, CFG, WIDE.replace(frontier=2))
+    """Half the rays may be walked again, more than half overflow the narrow pass: the first ones
+    get the wide pass's segments, the rest keep the narrow pass's and count their loss; growth then
+    retries every ray."""
+    tree, rays, cfg = hard_case("sphere_700")
+    one, narrow = walk(tree, rays, cfg, WIDE), walk(tree, rays, cfg, WIDE.replace(frontier=2))
     over = np.asarray(narrow.frontier_overflow) > 0
-    cap = 2
+    cap = rays.num_rays // 2
     assert over.sum() > cap
-    caps = WIDE.replace(first_pass_frontier=2, retry_share=cap / rays.num_rays)
-    two = intersect(tree, rays, CFG, caps)
+    caps = TWO_PASS.replace(retry_share=cap / rays.num_rays)
+    two = walk(tree, rays, cfg, caps)
     redone = np.flatnonzero(over)[:cap]  # the first overflowing rays are walked again
     kept = np.flatnonzero(over)[cap:]
     for f in SEG_FIELDS:
@@ -204,49 +220,44 @@ def test_two_pass_beyond_the_retry_share_is_counted():
         np.testing.assert_array_equal(got[~over], a[~over], err_msg=f)
         np.testing.assert_array_equal(got[kept], b[kept], err_msg=f)
     assert np.all(np.asarray(two.frontier_overflow)[kept] > 0)  # never silent
-    full, grown = intersect_checked(tree, rays, CFG, caps)  # growth retries more rays before it widens
+    full, grown = intersect_checked(tree, rays, cfg, caps)  # growth retries more rays before it widens
     assert grown.first_pass_frontier == 2 and grown.frontier == 64 and grown.retry_share > caps.retry_share
-    compare(tree, rays, full, CFG)
+    compare(tree, rays, full, cfg)
     all_retried = caps.replace(retry_share=1.0)
     assert grow(all_retried, two.lost()) == all_retried.replace(frontier=128)
     assert grow(WIDE, narrow.lost()) == WIDE.replace(frontier=128)
 
 
+@functools.partial(jax.jit, static_argnames="caps")
+@jax.grad
+def _grad_wrt_origin(origin, tree, rays, caps):
+    """Gradient of a sum of segment lengths and entry distances with respect to the rays' origins."""
+    seg = intersect(tree, rays.replace(origin=origin), CFG, caps)
+    return jnp.sum(jnp.where(seg.valid, seg.t_hi - seg.t_lo + 0.1 * seg.t_lo, 0.0))
+
+
 def test_grad_wrt_origin_finite():
-    cfg = CFG.replace(depth=10)
-    one_pass = CAPS
-    two_pass = WIDE.replace(first_pass_frontier=2, retry_share=1.0)
-    for name, caps in (("sphere_700", one_pass), ("identical", one_pass), ("coplanar", one_pass),
-                       ("one_point", one_pass), ("sphere_700", two_pass), ("coplanar", two_pass)):
-        xyz, alive = padded(name)
-        tree = build_tree(xyz, alive, cfg)
-        o, d = hard_rays(tree, xyz, alive, n_boxes=3)
-
-        def loss(origin, d=d, tree=tree, caps=caps):
-            rays = make_rays(np.zeros((1, 3)), np.ones((1, 3)))
-            rays = rays.replace(origin=origin, direction=jnp.asarray(d), near=jnp.zeros(len(d)),
-                                far=jnp.full(len(d), 1e3))
-            seg = intersect(tree, rays, cfg, caps)
-            return jnp.sum(jnp.where(seg.valid, seg.t_hi - seg.t_lo + 0.1 * seg.t_lo, 0.0))
-
-        g = jax.grad(loss)(jnp.asarray(o))
+    for name, caps in (("sphere_700", CAPS), ("identical", CAPS), ("coplanar", CAPS), ("one_point", CAPS),
+                       ("sphere_700", TWO_PASS), ("coplanar", TWO_PASS)):
+        tree, rays, _ = hard_case(name)
+        g = _grad_wrt_origin(rays.origin, tree, rays, caps)
         assert np.all(np.isfinite(np.asarray(g))), name
         assert float(jnp.abs(g).sum()) > 0 or name == "one_point"
 
 
-@pytest.mark.parametrize("caps", [tiny_caps(), tiny_caps(first_pass_frontier=4)])
+@pytest.mark.parametrize("caps", [CAPS, TWO_PASS], ids=["one_pass", "two_pass"])
 def test_no_recompilation_for_same_capacities(caps):
-    cfg = tiny_tree(depth=10)
-    xyz = sphere(1000, seed=7)
-    t1 = build_tree(xyz, np.arange(1000) < 900, cfg)
-    t2 = build_tree(xyz * 1.5, np.arange(1000) >= 50, cfg)
-    o, d = hard_rays(t1, xyz, np.ones(1000, bool), n_random=10)
+    cfg = CFG
+    xyz = sphere(1024, seed=7)
+    t1 = build_tree(xyz, np.arange(1024) < 900, cfg)
+    t2 = build_tree(xyz * 1.5, np.arange(1024) >= 50, cfg)
+    o, d = hard_rays(t1, xyz, np.ones(1024, bool), n_boxes=4)
     r1 = make_rays(o, d)
     r2 = make_rays(o + 0.01, d[::-1])
-    intersect(t1, r1, cfg, caps).t_lo.block_until_ready()
+    walk(t1, r1, cfg, caps).t_lo.block_until_ready()
     size = intersect._cache_size()
     for tree, rays in ((t1, r2), (t2, r1), (t2, r2)):
-        intersect(tree, rays, cfg, caps).t_lo.block_until_ready()
+        walk(tree, rays, cfg, caps).t_lo.block_until_ready()
     assert intersect._cache_size() == size
 
 
