@@ -1,7 +1,13 @@
 """The paper's ablation "- integration + traditional point sampling" (``RenderConfig.integration =
 "samples"``): every sample of a segment shaded on its own and composited as its own ``1/s``
 sub-interval, against the segment (integration) mode, a float64 reference, gradients, compiles and
-the training step."""
+the training step.
+
+One image is one chunk (``chunk = RES * RES``): :func:`render_all` (one ``render_rays`` call over
+every ray of the image), ``render_image`` and ``render_chunked`` run the same compiled chunk for a
+given config and capacities."""
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -10,6 +16,7 @@ import pytest
 
 from ne_jax.data import cameras
 from ne_jax.data.rays import Camera, Rays, camera_rays
+from ne_jax.devices import default_mesh
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.knn import knn_interpolate
 from ne_jax.geometry.points import PointState
@@ -33,8 +40,19 @@ from tests.render.scenes import glossy_model
 RES = 16
 BG = jnp.array([1.0, 1.0, 1.0])
 SAMPLES = "samples"
-_render = _render_chunk  # the executables render_chunked / render_image compile: shared between the tests
+_render_rays = jax.jit(render_rays, static_argnums=0)
 _render_aux = jax.jit(render_rays_with_aux, static_argnums=0)
+
+
+def render_all(cfg, params, scene, rays, background=BG):
+    """One :func:`render_rays` call over every ray (``[RES * RES]``): the program ``render_chunked``
+    compiles for a chunk of them (per-ray background, the default mesh)."""
+    bg = jnp.broadcast_to(jnp.asarray(background, jnp.float32), (rays.num_rays, 3))
+    return _render_chunk(cfg, params, scene, rays, bg, mesh=default_mesh())
+
+
+def with_caps(scene, **changes):
+    return scene.replace(capacities=scene.capacities.replace(**changes))
 
 
 def _stochastic(cfg: RenderConfig) -> RenderConfig:
@@ -44,8 +62,10 @@ def _stochastic(cfg: RenderConfig) -> RenderConfig:
 
 @pytest.fixture(scope="module")
 def setup():
-    cfg = tiny_render(chunk=RES * RES)  # one image = one chunk: render_image shares _render's compiles
+    cfg = tiny_render(chunk=RES * RES)  # one image = one chunk
     params, scene = glossy_model(cfg)
+    # 2 segments per ray hold an image's (1.1 per ray); a starved budget grows into it
+    scene = with_caps(scene, segments_per_ray=2.0)
     camera = Camera.from_fov(cameras.orbit_cameras(8)[1], RES, RES, cameras.CAMERA_ANGLE_X)
     return cfg, params, scene, camera
 
@@ -95,9 +115,12 @@ def test_field_constant_along_rays_renders_as_the_segment_mode(setup, rule):
     const = scene.replace(points=p.replace(feature=jnp.broadcast_to(f, p.feature.shape),
                                            normal=jnp.broadcast_to(n, p.normal.shape)))
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
-    key = jax.random.key(2) if rule == "stochastic" else None
-    a = render_rays(cfg, params, const, rays, BG, key)
-    b = render_rays(cfg.replace(integration=SAMPLES), params, const, rays, BG, key)
+    if rule == "stochastic":
+        render = functools.partial(_render_rays, background=BG, key=jax.random.key(2))
+    else:  # the compiled chunk of the other tests
+        render = render_all
+    a = render(cfg, params, const, rays)
+    b = render(cfg.replace(integration=SAMPLES), params, const, rays)
     op = np.asarray(a.opacity)
     assert op.max() > 0.5 and (op == 0).any()  # the test means something: surfaces and misses
     for name in ("rgb", "opacity", "normal"):
@@ -107,8 +130,8 @@ def test_field_constant_along_rays_renders_as_the_segment_mode(setup, rule):
     for name in ("frontier", "slots", "packing", "emitted"):
         np.testing.assert_array_equal(np.asarray(getattr(b.lost, name)), np.asarray(getattr(a.lost, name)))
     # and with the scene's own (varying) features the two modes do differ: the switch does something
-    c = render_rays(cfg, params, scene, rays, BG, key)
-    d = render_rays(cfg.replace(integration=SAMPLES), params, scene, rays, BG, key)
+    c = render(cfg, params, scene, rays)
+    d = render(cfg.replace(integration=SAMPLES), params, scene, rays)
     assert float(jnp.abs(c.rgb - d.rgb).max()) > 1e-3
 
 
@@ -128,10 +151,26 @@ def _two_plane_scene(cfg):
     return PointScene.build(points, cfg, tiny_caps())
 
 
+_shade = jax.jit(shade, static_argnums=0)
+
+
+def _two_plane_rays():
+    """Four rays straight down at ``x, y`` (the last one misses both planes) and one oblique ray."""
+    xy = np.asarray([[0.05, 0.05], [-0.23, 0.31], [0.4, -0.12], [2.0, 2.0]])  # the last one misses
+    origin = np.concatenate([xy, np.full((4, 1), 2.0)], -1)
+    direction = np.tile([0.0, 0.0, -1.0], (4, 1))
+    oblique = np.asarray([0.6, 0.2, -0.75])
+    origin = np.concatenate([origin, [[-0.3, -0.1, 1.0]]])
+    direction = np.concatenate([direction, [oblique / np.linalg.norm(oblique)]])
+    return Rays(origin=jnp.asarray(origin, jnp.float32), direction=jnp.asarray(direction, jnp.float32),
+                near=jnp.zeros(5), far=jnp.full(5, 4.0))
+
+
 def _reference(cfg, params, scene, rays, background):
     """Per-sample compositing in float64 with a plain loop: segments as ``intersect`` emits them,
     sample ``j`` of ``s`` at the midpoint of sub-interval ``j``, its own KNN feature and shading
-    (the library's, float32), alpha ``1 - exp(-sigma L / s)`` front to back."""
+    (the library's, float32), alpha ``1 - exp(-sigma L / s)`` front to back. Also returns the
+    segments."""
     seg = jax.device_get(intersect(scene.tree, rays, cfg.kdtree, scene.capacities))
     spacing = float(scene.tree.spacing)
     depth = int(scene.tree.depth)
@@ -150,7 +189,7 @@ def _reference(cfg, params, scene, rays, background):
                                       jnp.asarray([seg.node[r, i]]), cfg.kdtree, False,
                                       {"feature": scene.points.feature, "normal": scene.points.normal})
             view = jnp.broadcast_to(jnp.asarray(d[r], jnp.float32), (1, s, 3))
-            sh = shade(cfg.shading, params, vals["feature"], vals["normal"], view)
+            sh = _shade(cfg.shading, params, vals["feature"], vals["normal"], view)
             sigma = np.asarray(sh.sigma[0], np.float64)
             c = np.asarray(sh.rgb[0], np.float64)
             for j in range(s):
@@ -164,7 +203,7 @@ def _reference(cfg, params, scene, rays, background):
         opacity.append(1.0 - trans)
         dep.append(depth_sum / (1.0 - trans) if trans < 1.0 else 0.0)
         weights.append(np.asarray(w_ray))
-    return np.asarray(rgb), np.asarray(opacity), np.asarray(dep), weights
+    return np.asarray(rgb), np.asarray(opacity), np.asarray(dep), weights, seg
 
 
 def test_matches_a_float64_per_sample_reference():
@@ -173,14 +212,7 @@ def test_matches_a_float64_per_sample_reference():
     base = tiny_render(integration=SAMPLES)
     scene = _two_plane_scene(base)
     params = init_color_model(base.shading, jax.random.key(5))
-    xy = np.asarray([[0.05, 0.05], [-0.23, 0.31], [0.4, -0.12], [2.0, 2.0]])  # the last one misses
-    origin = np.concatenate([xy, np.full((4, 1), 2.0)], -1)
-    direction = np.tile([0.0, 0.0, -1.0], (4, 1))
-    oblique = np.asarray([0.6, 0.2, -0.75])
-    origin = np.concatenate([origin, [[-0.3, -0.1, 1.0]]])
-    direction = np.concatenate([direction, [oblique / np.linalg.norm(oblique)]])
-    rays = Rays(origin=jnp.asarray(origin, jnp.float32), direction=jnp.asarray(direction, jnp.float32),
-                near=jnp.zeros(5), far=jnp.full(5, 4.0))
+    rays = _two_plane_rays()
     bg = jnp.asarray([0.2, 0.4, 0.6])
     ref = _reference(base, params, scene, rays, bg)
     for segments_per_ray in (None, 8.0):
@@ -191,7 +223,7 @@ def test_matches_a_float64_per_sample_reference():
 def _check_against_reference(cfg, params, scene, rays, bg, ref):
     out, aux = _render_aux(cfg, params, scene, rays, bg)
     assert int(out.lost.count.sum()) == 0
-    ref_rgb, ref_op, ref_depth, ref_w = ref
+    ref_rgb, ref_op, ref_depth, ref_w, seg = ref
     assert (np.asarray(out.num_segments)[:3] >= 2).all() and int(out.num_segments[3]) == 0
     assert 0.05 < ref_op[:3].min() and ref_op[4] > 0.05  # the test means something: partly opaque rays
     np.testing.assert_allclose(np.asarray(out.rgb), ref_rgb, atol=2e-5)
@@ -209,8 +241,8 @@ def _check_against_reference(cfg, params, scene, rays, bg, ref):
     np.testing.assert_allclose(np.linalg.norm(np.asarray(aux.pred_normal)[valid], axis=-1), 1.0, atol=1e-5)
     conf = np.asarray(aux.confidence)[valid]
     np.testing.assert_allclose(np.trace(np.asarray(aux.normal_moment)[valid], axis1=-2, axis2=-1), conf, atol=1e-5)
-    # the sub-intervals of a segment tile it: lengths sum to the segments' lengths
-    seg = jax.device_get(intersect(scene.tree, rays, cfg.kdtree, scene.capacities))
+    # the sub-intervals of a segment tile it: lengths sum to the segments' lengths (the reference's:
+    # the budget changes no segment)
     seg_len = np.where(seg.valid, seg.t_hi - seg.t_lo, 0.0).sum(-1) / float(scene.tree.spacing)
     np.testing.assert_allclose(np.asarray(aux.lengths).sum(-1), seg_len, rtol=1e-5, atol=1e-6)
 
@@ -219,19 +251,18 @@ def _check_against_reference(cfg, params, scene, rays, bg, ref):
 
 
 def test_packing_drops_are_counted_then_grown(setup):
+    """The scene's budget (2 segments per ray) changes nothing; one of 1/16 drops segments, counted
+    per ray, and ``render_chunked`` grows it (to 2)."""
     cfg, params, scene, camera = setup
     cfg = cfg.replace(integration=SAMPLES)
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
-    def budget(b):
-        return scene.replace(capacities=scene.capacities.replace(segments_per_ray=b))
-
-    full = _render(cfg, params, budget(None), rays, BG)
-    packed = _render(cfg, params, scene, rays, BG)
+    full = render_all(cfg, params, with_caps(scene, segments_per_ray=None), rays)
+    packed = render_all(cfg, params, scene, rays)
     np.testing.assert_allclose(np.asarray(packed.rgb), np.asarray(full.rgb), atol=1e-6)
-    starved = _render(cfg, params, budget(0.05), rays, BG)
+    starved = render_all(cfg, params, with_caps(scene, segments_per_ray=1 / 16), rays)
     lost = int(starved.lost.packing.sum())
     assert lost > 0 and int(starved.num_segments.sum()) + lost == int(full.num_segments.sum())
-    grown = render_chunked(cfg, params, budget(0.05), rays, BG)  # one chunk
+    grown = render_chunked(cfg, params, with_caps(scene, segments_per_ray=1 / 16), rays, BG)  # one chunk
     assert int(grown.lost.count.sum()) == 0
     np.testing.assert_allclose(np.asarray(grown.rgb), np.asarray(full.rgb), atol=1e-6)
 
@@ -241,8 +272,8 @@ def test_undeclared_ist_is_not_computed(setup):
     cfg = cfg.replace(integration=SAMPLES)
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     poisoned = scene.replace(points=scene.points.replace(ist=jnp.full_like(scene.points.ist, jnp.nan)))
-    assert np.isfinite(np.asarray(_render(cfg, params, poisoned, rays, BG).rgb)).all()
-    assert not np.isfinite(np.asarray(_render(cfg.with_effects(ist=True), params, poisoned, rays, BG).rgb)).all()
+    assert np.isfinite(np.asarray(render_all(cfg, params, poisoned, rays).rgb)).all()
+    assert not np.isfinite(np.asarray(render_all(cfg.with_effects(ist=True), params, poisoned, rays).rgb)).all()
 
 
 @pytest.mark.parametrize("rule", ["hermite", "stochastic"])
@@ -271,6 +302,9 @@ def test_gradients_are_finite_and_reach_params_and_points(setup, rule):
 
 
 def test_repeated_renders_do_not_recompile(setup):
+    """``render_image`` with new poses, features and background, and ``render_rays_with_aux`` (on
+    the two-plane scene packed as in the reference test) with new features and rays: nothing
+    compiles again."""
     cfg, params, scene, camera = setup
     cfg = cfg.replace(integration=SAMPLES)
     other = Camera.from_fov(cameras.orbit_cameras(8)[5], RES, RES, cameras.CAMERA_ANGLE_X)
@@ -282,10 +316,14 @@ def test_repeated_renders_do_not_recompile(setup):
     for args in calls * 2:
         render_image(cfg, params, args[0], args[1], args[2], cameras.NEAR, cameras.FAR)
     assert _render_chunk._cache_size() == size
-    rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
-    _render_aux(cfg, params, scene, rays, BG)
+    base = tiny_render(integration=SAMPLES)
+    planes = with_caps(_two_plane_scene(base), segments_per_ray=8.0)
+    rays = _two_plane_rays()
+    _render_aux(base, params, planes, rays, BG)
     size = _render_aux._cache_size()
-    _render_aux(cfg, params, moved, camera_rays(other, cameras.NEAR, cameras.FAR), jnp.zeros(3))
+    moved_planes = planes.replace(points=planes.points.replace(feature=planes.points.feature * 0.5))
+    other_rays = rays.replace(origin=rays.origin + 0.01, direction=rays.direction[::-1])
+    _render_aux(base, params, moved_planes, other_rays, jnp.zeros(3))
     assert _render_aux._cache_size() == size
 
 

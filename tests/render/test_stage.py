@@ -16,6 +16,11 @@ from ne_jax.render.stage import shade_own, shade_samples, shade_segments, values
 from tests.mini_presets import tiny_render
 from tests.render.scenes import glossy_model, glossy_points
 
+# The lookups compiled whole (one program per config and shape, shared by the tests).
+_segments = jax.jit(shade_segments, static_argnums=0, static_argnames="aux")
+_samples = jax.jit(shade_samples, static_argnums=0, static_argnames="aux")
+_own = jax.jit(shade_own, static_argnums=0)
+
 
 @pytest.fixture(scope="module")
 def setup():
@@ -62,8 +67,8 @@ def test_one_sample_segments_shade_as_their_samples(setup):
     """A segment of one sample with weight 1 is that sample: ``integrate`` == ``interpolate``."""
     cfg, params, scene, pos, node, view = setup
     one = pos[:, :1]
-    seg = shade_segments(cfg, params, scene, one, node, jnp.ones((6, 1)), view, aux=True)
-    smp = shade_samples(cfg, params, scene, one, node, view, aux=True)
+    seg = _segments(cfg, params, scene, one, node, jnp.ones((6, 1)), view, aux=True)
+    smp = _samples(cfg, params, scene, one, node, view, aux=True)
     for a, b in ((seg.sigma, smp.sigma[:, 0]), (seg.rgb, smp.rgb[:, 0]),
                  (seg.values["confidence"], smp.values["confidence"][:, 0])):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-5, atol=2e-6)
@@ -72,8 +77,8 @@ def test_one_sample_segments_shade_as_their_samples(setup):
 def test_segment_means_are_the_weighted_sum_of_the_sample_values(setup):
     cfg, params, scene, pos, node, view = setup
     w = jnp.asarray(np.random.default_rng(1).uniform(0, 1, (6, 4)), jnp.float32)
-    seg = shade_segments(cfg, params, scene, pos, node, w, view)
-    smp = shade_samples(cfg, params, scene, pos, node, view)
+    seg = _segments(cfg, params, scene, pos, node, w, view)
+    smp = _samples(cfg, params, scene, pos, node, view)
     mean = np.einsum("bs,bsf->bf", np.asarray(w, np.float64), np.asarray(smp.values["feature"], np.float64))
     np.testing.assert_allclose(np.asarray(seg.values["feature"]), mean, rtol=1e-4, atol=1e-5)
     assert seg.sigma.shape == (6,) and smp.sigma.shape == (6, 4) and seg.nearest is None
@@ -81,7 +86,7 @@ def test_segment_means_are_the_weighted_sum_of_the_sample_values(setup):
 
 def test_nearest_is_the_exact_nearest_alive_point_with_exact_knn(setup):
     cfg, params, scene, pos, node, view = setup
-    sh = shade_samples(cfg.replace(exact_knn=True), params, scene, pos, node, view)
+    sh = _samples(cfg.replace(exact_knn=True), params, scene, pos, node, view)
     alive = np.asarray(scene.points.xyz, np.float64)[np.asarray(scene.points.alive)]
     ref = np.min(np.linalg.norm(np.asarray(pos, np.float64)[..., None, :] - alive, axis=-1), axis=-1)
     np.testing.assert_allclose(np.asarray(sh.nearest), ref, rtol=1e-5, atol=1e-6)
@@ -91,12 +96,12 @@ def test_own_lookup_shades_each_point_from_its_own_values(setup):
     cfg, params, scene, _, _, _ = setup
     points = scene.points
     view = jnp.broadcast_to(jnp.asarray([0.0, 0.0, -1.0]), points.xyz.shape)
-    own = shade_own(cfg, params, points, view)
+    own = _own(cfg, params, points, view)
     np.testing.assert_array_equal(np.asarray(own.values["feature"]), np.asarray(points.feature))
     # the same point shaded alone, as a one-point cloud, interpolates to itself
     single = PointState.from_numpy(np.asarray(points.xyz[:1]), feature_dim=points.feature_dim,
                                    feature=np.asarray(points.feature[:1]), normal=np.asarray(points.normal[:1]))
-    alone = shade_own(cfg, params, single, view[:1])
+    alone = _own(cfg, params, single, view[:1])
     np.testing.assert_allclose(np.asarray(alone.rgb[0]), np.asarray(own.rgb[0]), rtol=1e-6)
 
 
@@ -113,7 +118,7 @@ def test_gradients_are_finite_at_samples_on_points_and_zero_weights(setup):
         return jnp.sum(a.rgb) + jnp.sum(a.sigma) + jnp.sum(b.rgb) + jnp.sum(jnp.where(jnp.isfinite(b.nearest),
                                                                                    b.nearest, 0.0))
 
-    g = jax.grad(loss, argnums=(0, 1))(scene.points.feature, scene.points.xyz)
+    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(scene.points.feature, scene.points.xyz)
     assert all(np.isfinite(np.asarray(x)).all() for x in g)
 
 

@@ -68,15 +68,17 @@ def test_scene_json_declares_and_bad_declarations_name_the_file(tmp_path):
 
 @pytest.fixture(scope="module")
 def variants(tmp_path_factory):
-    """glossy as the tiny preset renders it, its matte variant and a variant without alpha; blocks."""
+    """glossy as the tiny preset renders it (with its ``bend`` edit), its matte variant and a variant
+    without alpha; blocks (the variants and blocks without edits)."""
     root = tmp_path_factory.mktemp("effects")
     out = {}
-    for name, preset in (("glossy", LIKE_TINY), ("matte", BenchmarkPreset("matte", 64, 24, 1, 1, 1, 0.75, 2000,
-                                                                          matte=True)),
-                         ("opaque", BenchmarkPreset("opaque", 24, 5, 1, 1, 1, 0.4, 400, alpha=False))):
-        generate_scene("glossy", preset, root / name, 0)
+    for name, preset, edits in (
+            ("glossy", LIKE_TINY, ("bend",)),
+            ("matte", BenchmarkPreset("matte", 64, 24, 1, 1, 1, 0.75, 2000, matte=True), ()),
+            ("opaque", BenchmarkPreset("opaque", 24, 5, 1, 1, 1, 0.4, 400, alpha=False), ())):
+        generate_scene("glossy", preset, root / name, 0, edits=edits)
         out[name] = root / name / "glossy"
-    generate_scene("blocks", LIKE_TINY, root / "blocks", 0)
+    generate_scene("blocks", LIKE_TINY, root / "blocks", 0, edits=())
     out["blocks"] = root / "blocks" / "blocks"
     return out
 
@@ -109,7 +111,7 @@ def test_auto_background_from_alpha_and_no_cloud_keeps_specular(variants):
 
 def test_cli_train_records_the_effects_it_used(tmp_path, capsys):
     scene = tmp_path / "bench"
-    generate_scene("blocks", mini_benchmark(), scene, 0)  # declares specular off
+    generate_scene("blocks", mini_benchmark(), scene, 0, edits=())  # declares specular off
     run = tmp_path / "run"
     assert main(["train", str(scene / "blocks"), "--out", str(run), "--epochs", "1", "--steps-per-epoch", "2",
                  "--quiet", "--no-eval"]) == 0

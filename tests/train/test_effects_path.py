@@ -26,7 +26,7 @@ from ne_jax.eval import evaluate_model
 from ne_jax.train.effects import declare_effects
 from ne_jax.train.loop import train
 
-from tests.mini_presets import mini_benchmark, short_run
+from tests.mini_presets import MINI_CAPS, mini_benchmark, short_run
 
 SPECULAR_MODULES = ("specular", "tint", "roughness", "bottleneck")
 """Submodules of the colour model that only the specular branch has."""
@@ -111,11 +111,13 @@ def stages(tmp_path_factory):
 
     IDE degree 2 (fewer ops to compile) also makes each stage's render config this module's own,
     so no shading module is served from a cache filled by another test: each stage compiles its
-    own (the tests check that one was seen)."""
+    own (the tests check that one was seen). A traversal frontier of 32 nodes from the start: the
+    edited cloud's render would grow 16 to 32 and compile its render again."""
     root = tmp_path_factory.mktemp("effects_path")
-    generate_scene("glossy", mini_benchmark(resolution=16, train_views=4, surface_samples=800), root / "bench", 0)
+    generate_scene("glossy", mini_benchmark(resolution=16, train_views=4, surface_samples=800), root / "bench", 0,
+                   edits=("tilt_ring",))
     scene = root / "bench" / "glossy"
-    base = short_run(steps_per_epoch=2)
+    base = short_run(steps_per_epoch=2, capacities=MINI_CAPS.replace(frontier=32))
     base = base.replace(render=base.render.replace(shading=dataclasses.replace(base.render.shading, ide_degree=2)))
     edit, truth = benchmark_edit(scene, "tilt_ring")
     out = {}
