@@ -35,7 +35,7 @@ def test_same_seed_same_bytes(glossy_root, tmp_path):
 
 
 def test_other_seed_other_cameras(glossy_root, tmp_path):
-    generate_scene("glossy", GEN_SCENES, tmp_path, seed=1)
+    generate_scene("glossy", GEN_SCENES, tmp_path, seed=1, edits=())  # the cameras of the original suffice
     a = load_split(glossy_root / "glossy", "train").c2w
     b = load_split(tmp_path / "glossy", "train").c2w
     assert not np.allclose(a, b)

@@ -1,6 +1,9 @@
 """Equivariance of edited renders (:mod:`ne_jax.edit.fidelity`): a colour model over a small cloud,
 moved rigidly with the tree carried, renders from moved cameras what the unedited model renders
-from the original ones, at every tested angle and axis; the camera and point helpers are exact."""
+from the original ones, at every tested angle and axis; the camera and point helpers are exact.
+
+Two 16 x 16 views, one render chunk each (no survey pass), and the unedited reference rendered once
+for the file."""
 
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from ne_jax.data.rays import Camera
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import rigid_motion, rigid_scene
 from ne_jax.edit.fidelity import EXACT_DB, equivariance, exact_rigid_points, motion_parts, moved_camera, psnr_between
+from ne_jax.eval.views import render_views
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 from ne_jax.render.quadrature import QuadratureConfig
@@ -22,7 +26,7 @@ from ne_jax.render.shading import init_color_model
 
 from tests.mini_presets import tiny_render
 
-CFG = tiny_render(quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=512)
+CFG = tiny_render(quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=256)  # a view's rays
 NEAR, FAR = 0.5, 6.0
 
 
@@ -38,8 +42,10 @@ def model():
     noise = jnp.asarray(rng.normal(size=points.feature.shape), jnp.float32)
     points = points.replace(feature=points.feature + 0.5 * noise)
     params = init_color_model(CFG.shading, jax.random.key(2))
-    cams = [Camera.from_fov(look_at(3.0 * np.array(e)), 24, 24, 0.9) for e in ([1, 0.3, 0.4], [-0.5, 1, -0.2])]
-    return params, PointScene.build(points, CFG), cams
+    cams = [Camera.from_fov(look_at(3.0 * np.array(e)), 16, 16, 0.9) for e in ([1, 0.3, 0.4], [-0.5, 1, -0.2])]
+    scene = PointScene.build(points, CFG)
+    reference = render_views(CFG, params, scene, cams, (1.0, 1.0, 1.0), NEAR, FAR, progress=False)
+    return params, scene, cams, reference
 
 
 def test_camera_and_points_move_exactly():
@@ -63,27 +69,27 @@ def test_camera_and_points_move_exactly():
 @pytest.mark.parametrize("axis,angle", [((1.0, 1.0, 2.0), 2.0), ((1.0, 1.0, 2.0), 40.0), ((2.0, -1.0, 0.5), 90.0),
                                         ((0.0, 0.0, 1.0), 180.0)])
 def test_carried_tree_renders_rigid_motions_equivariantly(model, axis, angle):
-    params, scene, cams = model
+    """The carried tree meets the issue's bar (40 dB) by far (rounding and the IST's own fit remain);
+    a tree rebuilt on the edited cloud renders the same scene less exactly (other candidate sets)."""
+    params, scene, cams, ref = model
     edit = rigid_scene("turn", axis, angle, pivot=(0.1, -0.1, 0.0), translation=(0.2, 0.0, 0.1))
     render = edited_render_config(CFG, ist=True)
-    ref = None
     got = {}
     for tree in ("carry", "rebuild"):
         cfg = EditConfig(rebuild_tree=tree == "rebuild")
         points = apply_edit(scene.points, edit, cfg)
         res = equivariance(CFG, params, scene, render, cfg.scene(scene, points, render), edit.matrix, cams,
                            (1.0, 1.0, 1.0), NEAR, FAR, reference=ref)
-        ref = res["reference"]
         got[tree] = res["psnr"]
-    # the issue's bar is 40 dB; a carried tree meets it by far (rounding and the IST's own fit remain)
     assert got["carry"] >= 45.0, got
+    assert 15.0 <= got["rebuild"] < got["carry"], got
     assert np.std(ref) > 0.02  # the reference is an image, not a flat background
 
 
 def test_edited_scene_keeps_its_rest_and_carries_again(model):
     """A second edit of an edited scene carries the tree from the original rest positions, and the
     two edits compose: turning by 20 then 20 degrees renders as turning by 40."""
-    params, scene, cams = model
+    params, scene, cams, ref = model
     render = edited_render_config(CFG, ist=True)
     one = rigid_scene("a", (1.0, 0.0, 1.0), 20.0)
     pts1 = apply_edit(scene.points, one)
@@ -91,5 +97,6 @@ def test_edited_scene_keeps_its_rest_and_carries_again(model):
     np.testing.assert_array_equal(np.asarray(s1.rest_xyz), np.asarray(scene.points.xyz))
     s2 = s1.edited(apply_edit(pts1, one), render)
     np.testing.assert_array_equal(np.asarray(s2.rest_xyz), np.asarray(scene.points.xyz))
-    res = equivariance(CFG, params, scene, render, s2, one.matrix @ one.matrix, cams, (1.0, 1.0, 1.0), NEAR, FAR)
+    res = equivariance(CFG, params, scene, render, s2, one.matrix @ one.matrix, cams, (1.0, 1.0, 1.0), NEAR, FAR,
+                      reference=ref)
     assert res["psnr"] >= 40.0

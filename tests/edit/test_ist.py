@@ -1,6 +1,9 @@
 """IST: exact on rigid motions and on linear maps that keep the normal direction, equal to a float64
 numpy reference of the frame map's polar factor elsewhere, finite and orthogonal on degenerate
-frames, differentiable."""
+frames, differentiable.
+
+Every cloud is padded with dead slots to :data:`CAP` (dead slots take no part in the IST and are
+cut off again): :func:`ist_from_plan` compiles once per configuration for the file."""
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +18,7 @@ from .reference import frame_map_polar
 
 UNORIENTED = NormalConfig(orient="none")
 R = np.asarray(rotation_matrix([1.0, 2.0, 3.0], 0.7), np.float64)
+CAP = 1600  # slots of every cloud (the largest has 1600 points)
 
 
 def sphere(n=1500, seed=0):
@@ -28,11 +32,18 @@ def plane(m=30):
     return np.c_[g, np.zeros(len(g))], np.tile([0.0, 0.0, 1.0], (len(g), 1))
 
 
+def padded(n, *arrays):
+    """``[n, ...]`` arrays padded with zeros to ``CAP`` rows."""
+    return [np.concatenate([a, np.zeros((CAP - n,) + a.shape[1:], a.dtype)]) for a in map(np.asarray, arrays)]
+
+
 def ist_of(x0, n0, x1, n1, alive=None, cfg=ISTConfig(), conf=None):
-    alive = np.ones(len(x0), bool) if alive is None else alive
-    conf = np.full(len(x0), 0.5) if conf is None else conf
-    ist, sign, report = compute_ist(cfg, x0, n0, x1, n1, alive, conf)
-    return np.asarray(ist, np.float64), np.asarray(sign), report
+    """:func:`compute_ist` of ``n`` points in ``CAP`` slots (the rest dead): ``(ist [n], sign [n], report)``."""
+    n = len(x0)
+    alive = np.ones(n, bool) if alive is None else alive
+    conf = np.full(n, 0.5) if conf is None else conf
+    ist, sign, report = compute_ist(cfg, *padded(n, x0, n0, x1, n1, alive, conf))
+    return np.asarray(ist, np.float64)[:n], np.asarray(sign)[:n], report
 
 
 def assert_rotations(ist, tol=1e-5):
@@ -82,16 +93,20 @@ def test_general_linear_map_matches_float64_reference():
     lin = R @ sym
     x1 = x0 @ lin.T
     n1 = estimate_normals(UNORIENTED, x1).astype(np.float64)
+    n = len(x0)
+    cloud = padded(n, x0, n0, x1, n1, np.ones(n, bool), np.full(n, 0.5))
     cfg = ISTConfig(smooth_iters=0)
-    plan = plan_ist(cfg, x0, n0, x1, n1, np.ones(len(x0), bool), np.full(len(x0), 0.5))
+    plan = plan_ist(cfg, *cloud)
     ist, _, _ = ist_of(x0, n0, x1, n1, cfg=cfg)
-    ref = frame_map_polar(x0, n0, x1, n1, np.asarray(plan.pair))
+    ref = frame_map_polar(x0, n0, x1, n1, np.asarray(plan.pair)[:n])
     np.testing.assert_allclose(ist, ref, atol=2e-5)  # float32 solve + Newton vs float64 SVD
-    # for a linear map the frame map does not depend on which two neighbours span the frame
-    other = ISTConfig(smooth_iters=0, candidates=3)
-    pair3 = np.asarray(plan_ist(other, x0, n0, x1, n1, np.ones(len(x0), bool), np.full(len(x0), 0.5)).pair)
-    assert (pair3 != np.asarray(plan.pair)).any()
-    np.testing.assert_allclose(ist_of(x0, n0, x1, n1, cfg=other)[0], ist, atol=2e-5)
+    # for a linear map the frame map does not depend on which two neighbours span the frame: the
+    # pairs chosen among 3 candidates instead of 8, through the same program
+    other = plan_ist(ISTConfig(smooth_iters=0, candidates=3), *cloud)
+    assert (np.asarray(other.pair)[:n] != np.asarray(plan.pair)[:n]).any()
+    args = [jnp.asarray(a, jnp.float32) for a in cloud[:4]]
+    ist3 = ist_from_plan(cfg, plan.replace(pair=other.pair, good=other.good), *args)[0]
+    np.testing.assert_allclose(np.asarray(ist3, np.float64)[:n], ist, atol=2e-5)
 
 
 def test_bend_matches_the_jacobian_rotation_on_the_surface():
@@ -99,11 +114,11 @@ def test_bend_matches_the_jacobian_rotation_on_the_surface():
     def bend(p):
         return bend_points(p, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), np.deg2rad(60.0), 2.0)
 
-    x1 = np.asarray(bend(jnp.asarray(x0, jnp.float32)), np.float64)
+    bent_and_jacobian = jax.jit(lambda x: (bend(x), jax.vmap(jax.jacfwd(lambda p: bend(p[None])[0]))(x)))
+    x1, jac = (np.asarray(a, np.float64) for a in bent_and_jacobian(jnp.asarray(x0, jnp.float32)))
     n1 = estimate_normals(UNORIENTED, x1)
     ist, _, report = ist_of(x0, n0, x1, n1)
     assert report["good"] > 0.95 * len(x0)
-    jac = np.asarray(jax.vmap(jax.jacfwd(lambda p: bend(p[None])[0]))(jnp.asarray(x0, jnp.float32)), np.float64)
     u, _, vt = np.linalg.svd(np.linalg.inv(jac))  # a bend is locally a rotation: polar(J^-1) = J^-1
     expected = u @ vt
     angle = np.degrees(np.arccos(np.clip((np.einsum("cij,cij->c", ist, expected) - 1) / 2, -1, 1)))
@@ -145,10 +160,25 @@ def test_nearest_rotation_matches_svd_polar():
     cond = np.linalg.cond(m)
     m = m[cond < 50]
     u, _, vt = np.linalg.svd(m)
-    got = np.asarray(nearest_rotation(jnp.asarray(m, jnp.float32)), np.float64)
+    rotation = jax.jit(nearest_rotation)  # one program a shape, not one per operation
+    got = np.asarray(rotation(jnp.asarray(m, jnp.float32)), np.float64)
     np.testing.assert_allclose(got, u @ vt, atol=2e-5)
     rot = np.asarray(rotation_matrix([0.3, -1.0, 0.5], 2.0))
-    np.testing.assert_allclose(np.asarray(nearest_rotation(jnp.asarray(rot))), rot, atol=2e-7)
+    np.testing.assert_allclose(np.asarray(rotation(jnp.asarray(rot))), rot, atol=2e-7)
+
+
+GRAD_CFG = ISTConfig(polar_iters=6, fill_passes=1)
+
+
+def _rot(t):
+    return rotation_matrix([0.0, 0.3, 1.0], t)
+
+
+@jax.jit
+def _weighted_ist_and_grad(t, plan, x0, n0, n1, w):
+    """``sum(IST(t) * w)`` and its derivative in the rotation angle ``t`` (one program for every
+    angle and cloud of :func:`test_gradients_through_the_ist_are_finite`)."""
+    return jax.value_and_grad(lambda t: jnp.sum(ist_from_plan(GRAD_CFG, plan, x0, n0, x0 @ _rot(t).T, n1)[0] * w))(t)
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.7])
@@ -159,22 +189,17 @@ def test_gradients_through_the_ist_are_finite(angle):
     graph, so the gradient compiles in seconds instead of ~50 s on a 2-core CPU."""
     x0 = np.concatenate([sphere(300), np.c_[np.linspace(-1, 1, 10), np.zeros(10), np.zeros(10)]])
     n0 = np.concatenate([estimate_normals(UNORIENTED, x0[:300]), np.zeros((10, 3))])
-    cfg = ISTConfig(polar_iters=6, fill_passes=1)
-    def rot(t):
-        return rotation_matrix([0.0, 0.3, 1.0], t)
-
-    x1 = x0 @ np.asarray(rot(angle)).T
+    x1 = x0 @ np.asarray(_rot(angle)).T
     n1 = np.concatenate([estimate_normals(UNORIENTED, x1[:300]), np.zeros((10, 3))])
-    plan = plan_ist(cfg, x0, n0, x1, n1, np.ones(310, bool), np.full(310, 0.5))
+    plan = plan_ist(GRAD_CFG, x0, n0, x1, n1, np.ones(310, bool), np.full(310, 0.5))
     x0j, n0j, n1j = (jnp.asarray(a, jnp.float32) for a in (x0, n0, n1))
     w = jnp.asarray(np.random.default_rng(0).normal(size=(310, 3, 3)), jnp.float32)
 
     def f(t):
-        ist = ist_from_plan(cfg, plan, x0j, n0j, x0j @ rot(t).T, n1j)[0]
-        return jnp.sum(ist * w)
+        return _weighted_ist_and_grad(jnp.float32(t), plan, x0j, n0j, n1j, w)
 
-    g = jax.grad(f)(jnp.float32(angle))
+    g = f(angle)[1]
     assert np.isfinite(float(g))
     h = 1e-2
-    fd = (float(f(jnp.float32(angle + h))) - float(f(jnp.float32(angle - h)))) / (2 * h)
+    fd = (float(f(angle + h)[0]) - float(f(angle - h)[0])) / (2 * h)
     assert abs(float(g) - fd) < 0.02 * max(1.0, abs(fd))

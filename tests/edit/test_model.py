@@ -44,7 +44,7 @@ def trained(scene_dir, tmp_path_factory):
     run = RunConfig(name="test", render=render, capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
                     train=TrainConfig(lr=5e-3),
                     init=init, rounds=RoundConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
-                    epochs=1, steps_per_epoch=4, round_epochs=(1, 0), log_every=2).with_schedule()
+                    epochs=1, steps_per_epoch=2, round_epochs=(1, 0), log_every=2).with_schedule()
     out = tmp_path_factory.mktemp("run") / "trained"
     train(run, scene_dir, out, progress=False, log=lambda s: None)
     return out
@@ -128,7 +128,7 @@ def test_finetune_trains_features_and_the_ist(bent, tmp_path):
     """``train_ist=True`` through the API; ``train_ist=False`` (the default) is fine-tuned through the
     command line in :func:`test_cli_edit_and_finetune` with the same checks (one compile each)."""
     _, edited, _, _ = bent
-    result = finetune(edited, tmp_path / "ft", 1, steps_per_epoch=3, train_ist=True, progress=False,
+    result = finetune(edited, tmp_path / "ft", 1, steps_per_epoch=2, train_ist=True, progress=False,
                       log=lambda s: None)
     _check_finetuned(edited.scene.points, result.scene.points, result.history, tmp_path / "ft", True)
 

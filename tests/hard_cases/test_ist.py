@@ -8,6 +8,8 @@ under a rigid rotation ``R`` every frame the plan calls good gives ``R^T`` and e
 reference of the frame map's polar factor (float32 1e-4, float64 1e-9, absolute on entries of a
 rotation); dead slots keep the identity; gradients w.r.t. the edited positions are finite;
 ``apply_edit`` keeps finite positions and unit (or zero, for dead slots) normals.
+
+``apply_edit`` runs a fixed family of twists (:data:`TWISTS`): each edit compiles its own program.
 """
 
 from __future__ import annotations
@@ -31,6 +33,15 @@ from .common import CLOUD_KINDS, DTYPE, HYP, X64, assert_finite, make_cloud, mak
 ORTHO = 1e-10 if X64 else 2e-5
 MATCH = 1e-9 if X64 else 1e-4
 CFG = ISTConfig(smooth_iters=0)  # smoothing would mix good frames with filled ones at boundaries
+
+
+def _twist(rate, axis):
+    return Edit("twist", "twist", lambda p: twist_points(p, (0.0, 0.0, 0.0), axis, rate))
+
+
+_AXES = np.random.default_rng(7).normal(size=(8, 3))
+TWISTS = [_twist(rate, axis) for rate, axis in zip((-2.0, -1.4, -0.7, -0.05, 0.05, 0.8, 1.5, 2.0), _AXES)]
+"""Twists of rates across ``[-2, 2]`` about random axes."""
 
 
 def normals_of(xyz, alive, zero_fraction=0.0, seed=0):
@@ -83,6 +94,12 @@ def test_rigid_motion_on_hard_clouds(kind, scale):
     np.testing.assert_allclose(ist[good], np.broadcast_to(rot.T, ist[good].shape), atol=MATCH * spread)
 
 
+@jax.jit
+def _ist_gradient(plan, x0, n0, x1, n1, w):
+    """d sum(IST * w) / d edited positions (one program for every cloud)."""
+    return jax.grad(lambda p: jnp.sum(ist_from_plan(CFG, plan, x0, n0, p, n1)[0] * w))(x1)
+
+
 @pytest.mark.parametrize("kind", ["sphere", "coplanar", "collinear", "duplicates", "clusters"])
 def test_gradients_w_r_t_edited_positions_are_finite(kind):
     xyz, alive = make_cloud(kind, 150, seed=5, deleted=0.1)
@@ -90,22 +107,21 @@ def test_gradients_w_r_t_edited_positions_are_finite(kind):
     n0 = normals_of(x0, alive, zero_fraction=0.1)
     x1 = np.asarray(twist_points(jnp.asarray(x0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 0.8), np.float64)
     n1 = normals_of(x1, alive)
-    plan, ist, _, (a0, b0, a1, b1) = run_ist(x0, n0, x1, n1, alive, np.full(len(x0), 0.5))
+    plan, ist, _, args = run_ist(x0, n0, x1, n1, alive, np.full(len(x0), 0.5))
     assert_rotations(ist, alive)
     w = jnp.asarray(np.random.default_rng(0).normal(size=(len(x0), 3, 3)), DTYPE)
-    grad = jax.grad(lambda p: jnp.sum(ist_from_plan(CFG, plan, a0, b0, p, b1)[0] * w))(a1)
+    grad = _ist_gradient(plan, *args, w)
     assert_finite(grad, f"{kind}: d IST / d positions")
 
 
-@given(seed=st.integers(0, 2**16), kind=st.sampled_from(CLOUD_KINDS), deleted=st.sampled_from([0.0, 0.5, 0.95]))
+@given(seed=st.integers(0, 2**16), kind=st.sampled_from(CLOUD_KINDS), deleted=st.sampled_from([0.0, 0.5, 0.95]),
+       edit=st.sampled_from(TWISTS))
 @HYP
-def test_apply_edit_on_random_clouds_and_edits_is_finite(seed, kind, deleted):
+def test_apply_edit_on_random_clouds_and_edits_is_finite(seed, kind, deleted, edit):
     rng = np.random.default_rng(seed)
     xyz, alive = make_cloud(kind, int(rng.integers(1, 200)), seed=seed, deleted=deleted)
     points = make_state(xyz, alive, seed=seed)
     points = points.replace(normal=jnp.asarray(normals_of(np.asarray(xyz, np.float64), alive), DTYPE))
-    rate, axis = float(rng.uniform(-2, 2)), rng.normal(size=3)
-    edit = Edit("twist", "twist", lambda p: twist_points(p, (0.0, 0.0, 0.0), axis, rate))
     edited = apply_edit(points, edit)
     assert_finite(edited, f"{kind}: ")
     ist = np.asarray(edited.ist, np.float64)

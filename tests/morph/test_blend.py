@@ -105,17 +105,22 @@ def test_blended_shading_mixes_both_color_models_by_the_ratio():
     view = jax.random.normal(k[2], (7, 3))
     ist = jnp.broadcast_to(jnp.eye(3), (7, 2, 3, 3)) + 0.1 * jax.random.normal(k[3], (7, 2, 3, 3))
     r = 0.3
-    out = shade(blend, {"a": pa, "b": pb, "ratio": r}, feat, normal, view, ist)
-    oa = shade(ca, pa, feat[:, :ca.feature_dim], normal[:, 0], view, ist[:, 0])
-    ob = shade(cb, pb, feat[:, ca.feature_dim:], None, view, None)
+
+    @jax.jit
+    def blended_and_ends(ratio, feat):
+        """The blend, each end's own shading, and the blend's gradient (one program)."""
+        def loss(ratio, feat):
+            o = shade(blend, {"a": pa, "b": pb, "ratio": ratio}, feat, normal, view, ist)
+            return jnp.sum(o.rgb) + jnp.sum(o.sigma), o
+
+        (_, out), grads = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(ratio, feat)
+        oa = shade(ca, pa, feat[:, :ca.feature_dim], normal[:, 0], view, ist[:, 0])
+        ob = shade(cb, pb, feat[:, ca.feature_dim:], None, view, None)
+        return out, oa, ob, grads
+
+    out, oa, ob, (g_r, g_f) = blended_and_ends(jnp.float32(r), feat)
     np.testing.assert_allclose(out.sigma, (1 - r) * oa.sigma + r * ob.sigma, rtol=1e-6)
     np.testing.assert_allclose(out.rgb, (1 - r) * oa.rgb + r * ob.rgb, rtol=1e-6)
-
-    def loss(ratio, feat):
-        o = shade(blend, {"a": pa, "b": pb, "ratio": ratio}, feat, normal, view, ist)
-        return jnp.sum(o.rgb) + jnp.sum(o.sigma)
-
-    g_r, g_f = jax.grad(loss, argnums=(0, 1))(jnp.float32(r), feat)
     assert np.isfinite(float(g_r)) and float(g_r) != 0.0 and bool(jnp.all(jnp.isfinite(g_f)))
 
 
