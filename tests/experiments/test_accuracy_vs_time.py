@@ -115,14 +115,14 @@ def test_fit_order_recovers_a_power_law():
 
 @pytest.fixture(scope="module")
 def mini(tmp_path_factory):
-    """``(root, scene_dir, run)``: a 24-px generated glossy scene (as tests/edit/test_model.py) and a
-    RunConfig of a few steps."""
+    """``(root, scene_dir, run)``: a 24-px generated glossy scene (as tests/edit/test_model.py) with the
+    ``bend`` edit the image study scores, and a RunConfig of a few steps."""
     from ne_jax.benchmark.generate import generate_scene
 
     from tests.mini_presets import mini_benchmark, short_run
 
     root = tmp_path_factory.mktemp("avt_mini")
-    generate_scene("glossy", mini_benchmark(train_views=4), root / "bench", seed=0)
+    generate_scene("glossy", mini_benchmark(train_views=4), root / "bench", seed=0, edits=("bend",))
     return root, root / "bench" / "glossy", short_run()
 
 
@@ -134,6 +134,30 @@ def short_model(mini):
     root, scene_dir, run = mini
     train(run, scene_dir, root / "short_model", progress=False, log=lambda s: None)
     return root / "short_model"
+
+
+@pytest.fixture(scope="module")
+def initial_model(mini, tmp_path_factory):
+    """The run directory of the mini scene's model as a training run starts it (its initial cloud and
+    colour model, no step), with one epoch's record in ``metrics.json``."""
+    import jax
+
+    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.pointcloud.init import Views
+    from ne_jax.render.renderer import PointScene
+    from ne_jax.train.loop import initial_cloud, initial_points
+    from ne_jax.train.model import TrainedModel, save_trained
+    from ne_jax.train.state import init_train_state
+
+    _, scene_dir, run = mini
+    views = Views.from_split(load_split(scene_dir, "train"))
+    k_points, k_model = jax.random.split(jax.random.key(run.seed), 4)[:2]  # as train() draws them
+    points = initial_points(run, initial_cloud(run.init, scene_dir, views), views, k_points)
+    init = jax.jit(init_train_state, static_argnums=(0, 1))  # one program, not flax's eager operations
+    model = TrainedModel(run=run, state=init(run.train, run.render, points, k_model),
+                         scene=PointScene.build(points, run.render, run.capacities), scene_dir=scene_dir)
+    epochs = [{"epoch": 1, "psnr": 12.5, "train_seconds": 3.0}]
+    return save_trained(model, tmp_path_factory.mktemp("initial_model") / "run", metrics={"epochs": epochs})
 
 
 @pytest.fixture(scope="module")
@@ -274,13 +298,14 @@ def test_bench_presets_quick(image_run, tmp_path):
         bench.main(["--run", str(run_dir), "--steps", "0"])
 
 
-def test_compare_runs_same_and_different(short_model, tmp_path, capsys):
+def test_compare_runs_same_and_different(initial_model, tmp_path, capsys):
     """``python -m experiments.compare_runs``: a run against a copy of itself is equal bit for bit (exit 0); a
-    copy whose checkpoint holds other parameters is not (exit 1)."""
+    copy whose checkpoint holds other parameters is not (exit 1). (What the runs trained does not matter:
+    the run directory holds a model as training starts it.)"""
     import shutil
 
     compare = _load("compare_runs")
-    run_dir = short_model
+    run_dir = initial_model
     assert compare.main([str(run_dir), str(run_dir)]) == 0
     assert "every array equal bit for bit: True" in capsys.readouterr().out
     import jax
@@ -288,7 +313,8 @@ def test_compare_runs_same_and_different(short_model, tmp_path, capsys):
     from ne_jax.train.model import load_trained, save_trained
 
     model = load_trained(run_dir)
-    nudged = model.state.replace(params=jax.tree_util.tree_map(lambda a: a + 1e-3, model.state.params))
+    nudge = jax.jit(lambda params: jax.tree_util.tree_map(lambda a: a + 1e-3, params))  # one program
+    nudged = model.state.replace(params=nudge(model.state.params))
     other = tmp_path / "other"
     save_trained(dataclasses.replace(model, state=nudged), other)
     shutil.copy(run_dir / "metrics.json", other / "metrics.json")

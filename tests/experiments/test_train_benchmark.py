@@ -28,16 +28,21 @@ def test_resume_needs_runs(capsys):
 
 
 def test_a_short_run_writes_the_table(tmp_path):
-    """Two steps on a small scene: the JSON and the table hold both Chamfer measures."""
+    """Two steps on a small scene (a small carving, set with ``--set``): the JSON and the table hold both
+    Chamfer measures."""
     import json
 
     from ne_jax.benchmark.generate import generate_scene
 
-    generate_scene("glossy", TRAIN_SCENE, tmp_path / "bench", seed=0)
+    generate_scene("glossy", TRAIN_SCENE, tmp_path / "bench", seed=0, edits=())
+    sets = ["init.carve.resolution=48", "init.carve.num_points=1500"]
     _load().main(["--preset", "tiny", "--root", str(tmp_path / "bench"), "--scenes", "glossy", "--epochs", "1",
-                  "--steps-per-epoch", "2", "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "out")])
-    s = json.loads((tmp_path / "out" / "train_benchmark_tiny.json").read_text())["scenes"]["glossy"]
-    assert s["steps"] == 2 and 0.3 < s["seen_share"] < 1.0
+                  "--steps-per-epoch", "2", *(a for change in sets for a in ("--set", change)),
+                  "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "out")])
+    res = json.loads((tmp_path / "out" / "train_benchmark_tiny.json").read_text())
+    s = res["scenes"]["glossy"]
+    assert s["steps"] == 2 and 0.3 < s["seen_share"] < 1.0 and res["set"] == sets
+    assert s["initial_points"] <= 1500
     # the seen-surface measure: the accuracy over all samples, the completeness over the seen ones
     for when in ("initial", "final"):
         expected = 0.5 * (s[f"accuracy_{when}"] + s[f"completeness_seen_{when}"])

@@ -9,6 +9,10 @@ import numpy as np
 from experiments.view_dependence import ViewFromNormal
 from ne_jax.render.shading import Effects, ShadingConfig, init_color_model, shade
 
+# One compiled program per colour model (flax's eager init and apply compile every operation apiece).
+_init = jax.jit(init_color_model, static_argnums=0)
+_shade = jax.jit(shade, static_argnums=0)
+
 
 def _inputs(seed):
     rng = np.random.default_rng(seed)
@@ -20,14 +24,14 @@ def _inputs(seed):
 
 def test_shades_as_seen_along_the_normal_and_ignores_the_camera():
     cfg = ShadingConfig(effects=Effects())
-    params = init_color_model(cfg, jax.random.key(0))
+    params = _init(cfg, jax.random.key(0))
     f, n, d = _inputs(0)
     _, _, d2 = _inputs(1)
     probe = ViewFromNormal(cfg)
-    a, b = shade(probe, params, f, n, d), shade(probe, params, f, n, d2)
+    a, b = _shade(probe, params, f, n, d), _shade(probe, params, f, n, d2)  # the probe as a jit argument
     assert np.array_equal(np.asarray(a.rgb), np.asarray(b.rgb))  # the camera no longer matters
-    along = shade(cfg, params, f, n, -n)
+    along = _shade(cfg, params, f, n, -n)
     np.testing.assert_allclose(np.asarray(a.rgb), np.asarray(along.rgb), rtol=1e-6, atol=1e-7)
-    assert not np.allclose(np.asarray(shade(cfg, params, f, n, d).rgb), np.asarray(a.rgb))
+    assert not np.allclose(np.asarray(_shade(cfg, params, f, n, d).rgb), np.asarray(a.rgb))
     assert hash(probe) == hash(ViewFromNormal(cfg))  # static: usable as a jit argument
     assert probe.effects == cfg.effects and probe.feature_dim == cfg.feature_dim
