@@ -19,28 +19,21 @@ Writes ``experiments/results/bench_checks.{json,md}`` (``bench_checks_quick`` wi
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-from experiments.common import command, commit, write_results
+from experiments.common import check_agree, command, commit, first_call_by_phase, write_results
 from experiments.profile_hot_path import CONFIG, whole_calls
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SETTINGS = ("off", "on", "on_inline")
-EVENTS = {"trace_s": "/jax/core/compile/jaxpr_trace_duration",
-          "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
-          "compile_s": "/jax/core/compile/backend_compile_duration"}
 
 
 def measure(setting: str, steps: int, quick: bool) -> dict:
     """The first call of the (un)checked training step, by phase, and the best of ``steps`` more."""
-    import jax
-    import jax.monitoring
     import numpy as np
     from jax.experimental import checkify
 
@@ -55,18 +48,10 @@ def measure(setting: str, steps: int, quick: bool) -> dict:
     run = get_run_preset(CONFIG)
     run = run.replace(render=run.render.replace(checks=setting != "off"))
     _, step, state, _ = whole_calls(quick, run)
-    seconds = collections.Counter()
-    jax.monitoring.register_event_duration_secs_listener(lambda e, d, **kw: seconds.update({e: d}))
-    t0 = time.perf_counter()
-    _, metrics = jax.block_until_ready(step(state))
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        jax.block_until_ready(step(state))
-        times.append(time.perf_counter() - t0)
-    return {"setting": setting, "first_call_s": first, **{k: seconds[v] for k, v in EVENTS.items()},
-            "step_ms": 1e3 * min(times), "loss": float(np.asarray(metrics["loss/total"])),
+    phases, (_, metrics) = first_call_by_phase(lambda: step(state), steps)
+    step_ms = phases.pop("best_ms")
+    return {"setting": setting, **phases, "step_ms": step_ms,
+            "loss": float(np.asarray(metrics["loss/total"])),
             "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()]}
 
 
@@ -113,9 +98,8 @@ def main(argv=None) -> None:
             rows.append(_child(s, args.steps, args.quick))
             print(f"round {k + 1} {s}: first call {rows[-1]['first_call_s']:.1f} s, step {rows[-1]['step_ms']:.0f} ms",
                   flush=True)
-    losses = [r["loss"] for r in rows]  # the checks change fusion, so the float32 rounding may differ
-    if max(losses) - min(losses) > 1e-5 * abs(min(losses)):
-        raise RuntimeError(f"bench_checks: the settings' losses differ: {sorted(set(losses))}")
+    # the checks change fusion, so the float32 rounding may differ
+    check_agree("bench_checks", "losses", [r["loss"] for r in rows])
     best = {s: min((r for r in rows if r["setting"] == s), key=lambda r: r["first_call_s"]) for s in SETTINGS}
     res = {"command": command("experiments.bench_checks", argv), "commit": commit(), "jax": jax.__version__,
            "machine": {"cpus": os.cpu_count()}, "rounds": args.rounds, "steps": args.steps, "quick": args.quick,

@@ -21,15 +21,13 @@ Writes ``experiments/results/bench_xla_emitters.{json,md}`` (``bench_xla_emitter
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-from experiments.common import command, commit, write_results
+from experiments.common import check_agree, command, commit, first_call_by_phase, write_results
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SETTINGS = {
@@ -38,41 +36,17 @@ SETTINGS = {
     "level 0, fusion emitters": "--xla_backend_optimization_level=0",
     "level 0, loop emitters": "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false",
 }
-EVENTS = {"trace_s": "/jax/core/compile/jaxpr_trace_duration",
-          "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
-          "compile_s": "/jax/core/compile/backend_compile_duration"}
-
-
-def _first_and_best(fn, steps: int, seconds: collections.Counter) -> tuple[dict, object]:
-    """``({first call s, its trace / lower / compile s, best of ``steps`` more calls in ms}, fn's
-    output)``; ``seconds`` is filled by JAX's monitoring events."""
-    import jax
-
-    seconds.clear()
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    first = {"first_call_s": time.perf_counter() - t0, **{k: seconds[v] for k, v in EVENTS.items()}}
-    times = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return {**first, "best_ms": 1e3 * min(times)}, out
 
 
 def measure(steps: int, quick: bool) -> dict:
     """The render's and the training step's first call, by phase, and their best of ``steps``."""
-    import jax
-    import jax.monitoring
     import numpy as np
 
     from experiments.profile_hot_path import whole_calls
 
     render, step, state, _ = whole_calls(quick)
-    seconds = collections.Counter()
-    jax.monitoring.register_event_duration_secs_listener(lambda e, d, **kw: seconds.update({e: d}))
-    r, out = _first_and_best(lambda: render(state), steps, seconds)
-    s, (_, metrics) = _first_and_best(lambda: step(state), steps, seconds)
+    r, out = first_call_by_phase(lambda: render(state), steps)
+    s, (_, metrics) = first_call_by_phase(lambda: step(state), steps)
     return {"render": r, "step": s, "rgb_sum": float(np.asarray(out.rgb, np.float64).sum()),
             "loss": float(np.asarray(metrics["loss/total"])),
             "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()]}
@@ -85,12 +59,6 @@ def _child(setting: str, steps: int, quick: bool) -> dict:
     if res.returncode != 0:
         raise RuntimeError(f"bench_xla_emitters child {setting!r} failed:\n{res.stderr[-4000:]}")
     return {"setting": setting, "xla_flags": SETTINGS[setting], **json.loads(res.stdout.strip().splitlines()[-1])}
-
-
-def _agree(rows: list[dict], key: str) -> None:
-    values = [r[key] for r in rows]
-    if max(values) - min(values) > 1e-5 * abs(min(values)):
-        raise RuntimeError(f"bench_xla_emitters: the settings' {key} differ: {sorted(set(values))}")
 
 
 def to_markdown(res: dict) -> str:
@@ -134,8 +102,8 @@ def main(argv=None) -> None:
             st, rd = rows[-1]["step"], rows[-1]["render"]
             print(f"round {k + 1} {s}: step first call {st['first_call_s']:.1f} s, {st['best_ms']:.0f} ms; "
                   f"render first call {rd['first_call_s']:.1f} s, {rd['best_ms']:.0f} ms", flush=True)
-    _agree(rows, "loss")
-    _agree(rows, "rgb_sum")
+    check_agree("bench_xla_emitters", "loss", [r["loss"] for r in rows])
+    check_agree("bench_xla_emitters", "rendered colour sums", [r["rgb_sum"] for r in rows])
     best = {}
     for s in SETTINGS:  # per call: the round with the fastest first call, and the fastest run of any round
         mine = [r for r in rows if r["setting"] == s]
