@@ -145,13 +145,13 @@ def initial_model(mini, tmp_path_factory):
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.pointcloud.init import Views
     from ne_jax.render.renderer import PointScene
-    from ne_jax.train.loop import initial_cloud, initial_points
+    from ne_jax.train.loop import _keys, initial_cloud, initial_points
     from ne_jax.train.model import TrainedModel, save_trained
     from ne_jax.train.state import init_train_state
 
     _, scene_dir, run = mini
     views = Views.from_split(load_split(scene_dir, "train"))
-    k_points, k_model = jax.random.split(jax.random.key(run.seed), 4)[:2]  # as train() draws them
+    k_points, k_model, *_ = _keys(run.seed)  # train()'s keys
     points = initial_points(run, initial_cloud(run.init, scene_dir, views), views, k_points)
     init = jax.jit(init_train_state, static_argnums=(0, 1))  # one program, not flax's eager operations
     model = TrainedModel(run=run, state=init(run.train, run.render, points, k_model),
