@@ -39,12 +39,19 @@ def best_time(fn, repeats: int) -> tuple[float, float]:
     t0 = time.perf_counter()
     jax.block_until_ready(fn())
     first = time.perf_counter() - t0
+    return first, _best_of(fn, repeats)
+
+
+def _best_of(fn, repeats: int) -> float:
+    """The minimum over ``max(1, repeats)`` calls of ``fn``, in seconds (each waited for)."""
+    import jax
+
     best = math.inf
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
         best = min(best, time.perf_counter() - t0)
-    return first, best
+    return best
 
 
 COMPILE_PHASES = {"trace_s": "/jax/core/compile/jaxpr_trace_duration",
@@ -73,12 +80,8 @@ def first_call_by_phase(fn, repeats: int) -> tuple[dict, object]:
         first = time.perf_counter() - t0
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
-    best = math.inf
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return {"first_call_s": first, **{k: seconds[v] for k, v in COMPILE_PHASES.items()}, "best_ms": 1e3 * best}, out
+    best_ms = 1e3 * _best_of(fn, repeats)
+    return {"first_call_s": first, **{k: seconds[v] for k, v in COMPILE_PHASES.items()}, "best_ms": best_ms}, out
 
 
 def check_agree(study: str, what: str, values: list[float], rtol: float = 1e-5) -> None:
