@@ -18,7 +18,7 @@ import numpy as np
 
 from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
 from ne_jax.edit.deformations import Edit
-from ne_jax.edit.targets import EditError, EditSource
+from ne_jax.edit.targets import EditError, EditSource, edit_target
 from ne_jax.train.loop import StartFrom, train
 from ne_jax.train.model import TrainedModel, save_trained
 from ne_jax.train.run import RunConfig
@@ -42,13 +42,29 @@ def edit_model(model: TrainedModel, edit: EditSource, out_dir: str | Path | None
     run = model.run.replace(render=edited_render_config(model.run.render, ist))
     state = model.state.with_points(points, np.zeros(points.capacity, bool))
     edited = TrainedModel(run=run, state=state, scene=cfg.scene(model.scene, points, run.render),
-                          scene_dir=None if scene_dir is None else Path(scene_dir), meta=dict(model.meta))
+                          scene_dir=None if scene_dir is None else Path(scene_dir), meta=dict(model.meta),
+                          frame=model.frame)
     report = {"edit": label, "ist": ist, **report}
     if out_dir is not None:
         source = {"scene_dir": str(model.scene_dir) if model.scene_dir else None, "step": int(model.state.step)}
         save_trained(edited, out_dir, {"edit": report, "source": source, "epochs": []},
                      extra={"history": [], "edit": report})
     return edited, report
+
+
+def in_model_frame(points, edit: EditSource, frame) -> EditSource:
+    """``edit``, written in the capture's coordinates, as new positions in the model's: the edit's
+    target is taken on the points seen in the capture's frame and brought back by ``frame``
+    (a :class:`~ne_jax.data.scene.Normalisation`); ``edit`` itself where ``frame`` is the identity.
+    Returns rows ``[alive, 3]`` (NaN rows delete), as :func:`~ne_jax.edit.targets.edit_target` reads."""
+    if frame.is_identity:
+        return edit
+    alive = np.asarray(points.alive)
+    seen = points.replace(xyz=np.asarray(frame.to_capture(np.asarray(points.xyz)), np.float32))
+    target = edit_target(seen, edit)
+    rows = frame.to_scene(target.xyz[alive])
+    rows[target.deleted[alive]] = np.nan
+    return rows
 
 
 def finetune_config(run: RunConfig, epochs: int = 1, *, steps_per_epoch: int | None = None,
@@ -84,4 +100,4 @@ def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene
     return train(run, scene_dir, run_dir, resume=resume, progress=progress, log=log, start=start)
 
 
-__all__ = ["edit_model", "finetune", "finetune_config"]
+__all__ = ["edit_model", "finetune", "finetune_config", "in_model_frame"]

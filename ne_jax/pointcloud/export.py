@@ -31,12 +31,18 @@ def point_colors(cfg: ShadingConfig, params: dict, points: PointState) -> jax.Ar
     return shade(cfg, params, points.feature, normal, view, ist).rgb
 
 
-def export_ply(path: str | os.PathLike, cfg: ShadingConfig, params: dict, points: PointState) -> int:
+def export_ply(path: str | os.PathLike, cfg: ShadingConfig, params: dict, points: PointState, frame=None) -> int:
     """Write the alive points to a binary PLY (atomically): ``x y z nx ny nz confidence red green
-    blue index`` (colours ``uint8``, see :func:`point_colors`). Returns the number of points."""
+    blue index`` (colours ``uint8``, see :func:`point_colors`). Returns the number of points.
+
+    ``frame`` (a :class:`~ne_jax.data.scene.Normalisation`, the model's ``frame``): positions and
+    normals are written in the capture's coordinates; ``None``: the model's."""
     alive = np.flatnonzero(np.asarray(points.alive))
     xyz = np.asarray(points.xyz, np.float32)[alive]
     nrm = np.asarray(points.normal, np.float32)[alive]
+    if frame is not None and not frame.is_identity:
+        xyz = frame.to_capture(xyz).astype(np.float32)
+        nrm = frame.rotate_to_capture(nrm).astype(np.float32)
     rgb = np.asarray(point_colors(cfg, params, points), np.float32)[alive]
     rgb8 = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
     conf = np.asarray(points.confidence, np.float32)[alive]

@@ -32,10 +32,12 @@ from tqdm.auto import tqdm
 from ne_jax.atomic import atomic_write_text
 from ne_jax.compiles import count_compiles
 from ne_jax.config_json import config_diff, config_to_json
-from ne_jax.data.nerf_synthetic import SceneSplit, load_split
+from ne_jax.data.nerf_synthetic import SceneSplit
+from ne_jax.data.scene import Normalisation, detect_format, load_split, scene_near_far, scene_points, scene_record
 from ne_jax.geometry.capacity import LostCounts
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import (
+    CarvingError,
     InitialCloud,
     Views,
     carve_visual_hull,
@@ -44,11 +46,13 @@ from ne_jax.pointcloud.init import (
 )
 from ne_jax.pointcloud.normals import estimate_normals
 from ne_jax.pointcloud.rounds import point_round
+from ne_jax.pointcloud.sfm_init import sfm_cloud
 from ne_jax.render.renderer import PointScene
 from ne_jax.train.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, save_checkpoint
 from ne_jax.train.model import (
     CHECKPOINT_DIR,
     METRICS_FILE,
+    SCENE_RECORD_FILE,
     TrainedModel,
     _json_safe,
     _scene_of,
@@ -69,17 +73,50 @@ _train_step = functools.lru_cache(maxsize=8)(make_train_step)
 
 
 def initial_cloud(cfg: InitConfig, scene_dir: Path, views: Views) -> InitialCloud:
-    """The run's initial cloud (see :class:`InitConfig`); carving with one view uses ``min_views=1``."""
-    if cfg.source == "ply":
-        return load_ply_cloud(cfg.ply_path)
-    if cfg.source == "ground_truth":
-        return ground_truth_cloud(scene_dir)
-    carve = cfg.carve
-    if views.num_views < carve.min_views:
-        warnings.warn(f"carving: {views.num_views} training view(s) < min_views={carve.min_views}; "
-                      f"carving with min_views={views.num_views}", stacklevel=2)
-        carve = dataclasses.replace(carve, min_views=views.num_views)
-    return carve_visual_hull(carve, views)
+    """The run's initial cloud (see :class:`InitConfig`); carving with one view uses ``min_views=1``.
+    ``info["why"]`` says why ``"auto"`` chose its source."""
+    source, why = cfg.source, f"init.source = {cfg.source!r}"
+    if source == "auto":
+        has_masks = bool((views.alpha < 0.99).any())
+        if scene_points(scene_dir) is not None:
+            source, why = "sfm", f"auto: the {detect_format(scene_dir)} scene has structure-from-motion points"
+        elif has_masks:
+            source, why = "carving", "auto: the training images have alpha masks (a visual hull)"
+        else:
+            raise CarvingError(
+                f"{scene_dir}: init.source='auto' found neither structure-from-motion points (COLMAP points3D, "
+                "nerfstudio ply_file_path) nor alpha masks in the training images to start a cloud from; run "
+                "`ne-jax process-images PHOTOS --out SCENE` to make a COLMAP scene, or pass --init ply --ply FILE")
+    if source == "ply":
+        cloud = load_ply_cloud(cfg.ply_path)
+    elif source == "ground_truth":
+        cloud = ground_truth_cloud(scene_dir)
+    elif source == "sfm":
+        found = scene_points(scene_dir)
+        if found is None:
+            raise CarvingError(f"{scene_dir}: init.source='sfm' but the scene folder has no structure-from-motion "
+                               "points (COLMAP points3D, nerfstudio ply_file_path)")
+        xyz, _, error = found
+        cloud = sfm_cloud(xyz, views, cfg.carve.num_points, error=error, seed=cfg.carve.seed)
+    else:
+        carve = cfg.carve
+        if views.num_views < carve.min_views:
+            warnings.warn(f"carving: {views.num_views} training view(s) < min_views={carve.min_views}; "
+                          f"carving with min_views={views.num_views}", stacklevel=2)
+            carve = dataclasses.replace(carve, min_views=views.num_views)
+        cloud = carve_visual_hull(carve, views)
+    return dataclasses.replace(cloud, info={**cloud.info, "why": why})
+
+
+def fit_to_scene(run: RunConfig, scene_dir: Path) -> RunConfig:
+    """``run`` with what its scene folder decides: for a capture with
+    ``sampler.bounds_from_scene``, ``near``/``far`` from its cameras and points
+    (:func:`~ne_jax.data.scene.scene_near_far`); a NeRF Synthetic folder changes nothing."""
+    bounds = scene_near_far(scene_dir) if run.sampler.bounds_from_scene else None
+    if bounds is None:
+        return run
+    near, far = (float(f"{x:.6g}") for x in bounds)
+    return run.replace(sampler=run.sampler.replace(near=near, far=far))
 
 
 def initial_points(run: RunConfig, cloud: InitialCloud, views: Views, key: jax.Array) -> PointState:
@@ -212,7 +249,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         TrainingDiverged: an epoch in which every step was refused for non-finite values.
     """
     scene_dir, run_dir = Path(scene_dir), Path(run_dir)
-    split = load_split(scene_dir, "train") if split is None else split
+    run = fit_to_scene(run, scene_dir)
+    split = load_split(scene_dir, "train", run.downscale) if split is None else split
     views = Views.from_split(split)
     sampler = run.sampler
     pool = build_pool(sampler, split, run.background)  # fails early (named) on empty masks
@@ -226,6 +264,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         log(f"restarting {run_dir} (resume=False): removed the earlier run's checkpoints {old} and its metrics")
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / CONFIG_FILE, json.dumps(config_to_json(run), indent=2) + "\n")
+    record = {**scene_record(scene_dir), "downscale": run.downscale, "train_views": list(split.file_paths)}
+    atomic_write_text(run_dir / SCENE_RECORD_FILE, json.dumps(_json_safe(record), indent=2) + "\n")
     k_points, k_model, k_batch, k_rounds = _keys(run.seed)
 
     history: list = []
@@ -328,6 +368,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
     finally:
         bar.close()
     return TrainedModel(run=run, state=state, scene=state.scene(scene), scene_dir=scene_dir, run_dir=run_dir,
+                        frame=Normalisation.from_dict(record["normalisation"]),
                         history=history, initial=initial)
 
 
@@ -356,4 +397,4 @@ def _epoch_line(r: dict) -> str:
     return line
 
 
-__all__ = ["StartFrom", "TrainingDiverged", "initial_cloud", "initial_points", "lost_counts", "train"]
+__all__ = ["StartFrom", "TrainingDiverged", "initial_cloud", "fit_to_scene", "initial_points", "lost_counts", "train"]

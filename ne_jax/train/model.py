@@ -5,6 +5,7 @@ A run directory holds::
     run_dir/
         config.json      the resolved RunConfig (typed; :func:`~ne_jax.train.run.load_run_config`)
         metrics.json     the scene folder, the initial cloud's provenance and one record per epoch
+        scene_record.json  the scene's layout, splits, normalisation and near/far (SCENE_RECORD_FILE)
         checkpoints/     ckpt_<step>/ and latest (see :mod:`ne_jax.train.checkpoint`)
         tree_rest.npz    only for an edited model whose K-D tree is carried (:data:`REST_FILE`)
 """
@@ -23,6 +24,7 @@ from ne_jax.atomic import atomic_directory, atomic_write_bytes, atomic_write_tex
 from ne_jax.config_json import config_to_json
 from ne_jax.data.nerf_synthetic import parse_background
 from ne_jax.data.rays import Camera
+from ne_jax.data.scene import SCENE_RECORD_FILE, Normalisation
 from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig, RenderOut, render_image
@@ -89,7 +91,9 @@ class TrainedModel:
     ``scene_dir``: the scene folder it was trained on (or the edited scene's ground truth; ``None``
     when unknown); ``run_dir``: its run directory (``None`` for a model only in memory);
     ``history``: one record per epoch (as in ``metrics.json``); ``initial``: the initial cloud's
-    provenance; ``meta``: the checkpoint's metadata."""
+    provenance; ``meta``: the checkpoint's metadata; ``frame``: the similarity from the capture's
+    coordinates to the model's (:mod:`ne_jax.data.scene`; identity for a NeRF Synthetic scene), which
+    exported clouds and edit files are converted through."""
 
     run: RunConfig
     state: TrainState
@@ -99,6 +103,7 @@ class TrainedModel:
     history: list = dataclasses.field(default_factory=list)
     initial: dict = dataclasses.field(default_factory=dict)
     meta: dict = dataclasses.field(default_factory=dict)
+    frame: Normalisation = Normalisation()
 
     @property
     def params(self):
@@ -165,7 +170,17 @@ def load_trained(run_dir: str | Path) -> TrainedModel:
     scene = _scene_of(points, run.render, run_dir, saved_capacities(meta, run.capacities))
     return TrainedModel(run=run, state=state, scene=scene, scene_dir=scene_dir,
                         run_dir=run_dir, history=list(metrics.get("epochs", [])),
-                        initial=dict(metrics.get("initial_cloud", {})), meta=meta)
+                        initial=dict(metrics.get("initial_cloud", {})), meta=meta, frame=read_frame(run_dir))
+
+
+def read_frame(run_dir: str | Path) -> Normalisation:
+    """The capture-to-model similarity a run directory records (:data:`SCENE_RECORD_FILE`);
+    identity when it records none (a NeRF Synthetic scene, or a run of an earlier version)."""
+    file = Path(run_dir) / SCENE_RECORD_FILE
+    if not file.is_file():
+        return Normalisation()
+    record = json.loads(file.read_text(encoding="utf-8"))
+    return Normalisation.from_dict(record["normalisation"]) if "normalisation" in record else Normalisation()
 
 
 def save_trained(model: TrainedModel, run_dir: str | Path, metrics: dict | None = None,
@@ -183,6 +198,8 @@ def save_trained(model: TrainedModel, run_dir: str | Path, metrics: dict | None 
         save_checkpoint(tmp / CHECKPOINT_DIR, model.state, points, model.run.train, model.run.render,
                         extra=extra, keep=1)
         _write_rest(tmp, model.scene)
+        frame = {"normalisation": model.frame.as_dict()}
+        atomic_write_text(tmp / SCENE_RECORD_FILE, json.dumps(frame, indent=2) + "\n")
     return Path(run_dir)
 
 

@@ -20,7 +20,7 @@ from ne_jax.render.renderer import RenderConfig
 from ne_jax.train.sampler import SamplerConfig
 from ne_jax.train.state import TrainConfig
 
-INIT_SOURCES = ("carving", "ply", "ground_truth")
+INIT_SOURCES = ("auto", "carving", "sfm", "ply", "ground_truth")
 CONFIG_FILE = "config.json"
 
 
@@ -28,13 +28,17 @@ CONFIG_FILE = "config.json"
 class InitConfig:
     """Where the initial cloud comes from (hashable)."""
 
-    source: str = "carving"
-    """``"carving"`` (visual hull of the training masks), ``"ply"`` (``ply_path``), or
-    ``"ground_truth"`` (the benchmark's surface samples: only when asked for; results are labelled)."""
+    source: str = "auto"
+    """``"auto"`` (the capture's SfM points where the scene folder has them, else carving where the
+    images have alpha masks; the run records which and why), ``"carving"`` (visual hull of the
+    training masks), ``"sfm"`` (the capture's structure-from-motion points, cleaned and densified:
+    :mod:`ne_jax.pointcloud.sfm_init`), ``"ply"`` (``ply_path``), or ``"ground_truth"`` (the
+    benchmark's surface samples: only when asked for; results are labelled)."""
     ply_path: str | None = None
     """The user's PLY for ``source="ply"``."""
     carve: CarveConfig = CarveConfig(bounds=((-1.1,) * 3, (1.1,) * 3), resolution=128, num_points=20_000)
-    """Carving settings (the benchmark's objects lie in ``[-1, 1]^3``)."""
+    """Carving settings (the benchmark's objects lie in ``[-1, 1]^3``, and a capture is brought there:
+    :mod:`ne_jax.data.scene`). ``carve.num_points`` is also the size a sparse SfM start is densified to."""
     capacity_headroom: float = 1.5
     """Initial capacity ``ceil(N * headroom)``: room for growth before a re-allocation."""
 
@@ -71,6 +75,9 @@ class RunConfig:
     steps_per_epoch: int = 1000
     round_epochs: tuple[int, int] = (4, 12)
     """A point-cloud round follows epochs ``first .. last`` (1-based, inclusive; docs/design.md: 4-12)."""
+    downscale: int = 1
+    """Images are read downscaled by this integer factor (area average; intrinsics divided): every
+    command on the run reads its scene at this resolution."""
     background: str = "white"
     """The colour behind the object in training and evaluation (``"white"``, ``"black"``)."""
     seed: int = 0
@@ -86,6 +93,8 @@ class RunConfig:
         if int(self.epochs) < 1 or int(self.steps_per_epoch) < 1:
             raise ValueError(f"RunConfig: expected epochs >= 1 and steps_per_epoch >= 1, found "
                              f"{self.epochs} and {self.steps_per_epoch}")
+        if isinstance(self.downscale, bool) or int(self.downscale) != self.downscale or self.downscale < 1:
+            raise ValueError(f"RunConfig.downscale: expected an integer >= 1, found {self.downscale!r}")
         a, b = self.round_epochs
         if not 1 <= a <= b + 1:
             raise ValueError("RunConfig.round_epochs: expected (first, last) with 1 <= first <= last + 1, "

@@ -49,6 +49,10 @@ class SamplerConfig:
     """Ray start distance (the benchmark's ``scene.json`` ``near``)."""
     far: float = 6.0
     """Ray end distance (the benchmark's ``scene.json`` ``far``)."""
+    bounds_from_scene: bool = True
+    """For a capture (any layout but NeRF Synthetic): ``near``/``far`` are replaced by the envelope
+    of the cameras' near/far from its SfM points (:func:`ne_jax.data.scene.scene_near_far`) when a
+    run starts, and the run's ``config.json`` holds the values used. ``False``: the values above."""
     pixel_samples: int | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
     """Rays per pixel side of the training batches; ``None``: the render config's ``pixel_samples``
     (:attr:`~ne_jax.train.run.RunConfig.train_render`). ``1`` with a render grid of 2 trains on

@@ -294,12 +294,14 @@ def delete_points(edit: ViewEdit, indices) -> ViewEdit:
     return dataclasses.replace(edit, deleted=deleted)
 
 
-def write_edit_ply(path: str | os.PathLike, edit: ViewEdit) -> int:
+def write_edit_ply(path: str | os.PathLike, edit: ViewEdit, frame=None) -> int:
     """Write ``edit`` as the indexed PLY that ``ne-jax edit --edit FILE.ply`` reads (atomically):
     ``x y z`` float32 and ``index`` int32 (the slot) of every remaining point; deleted points are left
-    out. Returns the number of points written."""
+    out. ``frame`` (the model's :class:`~ne_jax.data.scene.Normalisation`): positions in the
+    capture's coordinates, as edit files are read. Returns the number of points written."""
     keep = np.flatnonzero(edit.remaining)
-    xyz = edit.xyz[keep].astype(np.float32)
+    xyz = edit.xyz[keep].astype(np.float64)
+    xyz = (xyz if frame is None else frame.to_capture(xyz)).astype(np.float32)
     write_ply(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "index": keep.astype(np.int32)})
     return int(keep.size)
 
@@ -322,7 +324,7 @@ def save_view_edit(model, edit: ViewEdit, out_dir: str | os.PathLike, *, ist: bo
     with atomic_directory(out_dir) as tmp:
         run_tmp = tmp / "run"
         ply_tmp = tmp / EDIT_PLY
-        write_edit_ply(ply_tmp, edit)
+        write_edit_ply(ply_tmp, edit, model.frame)
         edited, report = edit_model(model, ply_tmp, run_tmp, ist=ist, cfg=cfg, label=label)
         os.replace(ply_tmp, run_tmp / EDIT_PLY)
         # the run directory becomes out_dir itself: move its content up one level

@@ -252,11 +252,11 @@ class Viewer:
 
     def _setup_initial_camera(self) -> None:
         self._train = None
-        if self.model.scene_dir is not None and (Path(self.model.scene_dir) / "transforms_train.json").is_file():
-            from ne_jax.data.nerf_synthetic import load_split
+        if self.model.scene_dir is not None and Path(self.model.scene_dir).is_dir():
+            from ne_jax.data.scene import load_split
 
             with contextlib.suppress(Exception):
-                self._train = load_split(self.model.scene_dir, "train")
+                self._train = load_split(self.model.scene_dir, "train", self.model.run.downscale)
         cam = self.server.initial_camera
         if self._train is not None:
             c2w = np.asarray(self._train.c2w[0], np.float64)
