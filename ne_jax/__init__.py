@@ -5,17 +5,18 @@ K-D-tree voxels and integrates KNN-interpolated features; editing moves indexed 
 Sub-packages follow the data flow: ``data`` (cameras, rays, scenes) -> ``geometry`` (points, K-D
 tree, traversal, KNN) -> ``render`` -> ``train`` -> ``edit``.
 
-Importing ``ne_jax`` gives JAX one host device per usable CPU core (on the CPU platform only, and
-only where no device count was given to JAX itself), so the ray mesh of :mod:`ne_jax.devices` uses
-every core; ``NE_JAX_HOST_DEVICES=1`` opts out (:mod:`ne_jax._platform`).
+Importing ``ne_jax`` changes nothing in the process: JAX keeps its defaults (one CPU device). A
+script or notebook that wants what the ``ne-jax`` command line gets (one host device per usable
+CPU core, so the ray mesh of :mod:`ne_jax.devices` uses every core) calls :func:`setup` before any
+JAX code runs::
+
+    import ne_jax
+
+    ne_jax.setup()  # or ne_jax.setup(host_devices=4); ne_jax.setup(huge_pages=True) in a script
 """
 
-from ne_jax._host_memory import reexec_entry_point as _reexec_entry_point
-
-_reexec_entry_point()  # `ne-jax`, `python -m ne_jax.<name>` / `experiments.<name>`: start again with huge pages
-
-from ne_jax._platform import configure_host_devices as _configure_host_devices  # noqa: E402
-
-_configure_host_devices()
+from ne_jax._platform import setup
 
 __version__ = "0.1.0"
+
+__all__ = ["setup"]

@@ -9,10 +9,13 @@ training step, a quarter of the step's CPU time spent in the kernel.
 
 glibc's tunable ``glibc.malloc.hugetlb=1`` asks for transparent huge pages on such mappings
 (``madvise``): one fault per 2 MiB instead of per 4 KiB. Tunables are read when a process starts,
-so a process started as ``ne-jax``, ``python -m ne_jax.<name>`` or ``python -m experiments.<name>``
-starts itself again with ``GLIBC_TUNABLES`` extended by it when ``ne_jax`` is imported, before JAX
-loads (:func:`reexec_entry_point`), and ``run.sh`` exports it; for your own scripts and notebooks,
-start Python with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``. ``NE_JAX_HOST_MEMORY=system`` keeps glibc's defaults.
+so they cannot be set from inside a running process, and importing ``ne_jax`` does not try: an
+entry point asks for them explicitly with ``ne_jax.setup(huge_pages=True)``
+(:func:`restart_with_huge_pages`: the same command line started again with ``GLIBC_TUNABLES``
+extended by it), which ``ne-jax`` and ``python -m experiments.<name>`` do first thing, and
+``run.sh`` exports the tunable. For your own scripts and notebooks, start Python with
+``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` (or call ``ne_jax.setup(huge_pages=True)`` first thing
+in a script). ``NE_JAX_HOST_MEMORY=system`` keeps glibc's defaults.
 ``python -m experiments.bench_host_memory`` measures both in one run (docs/studies/profile.md,
 "Page faults").
 
@@ -31,12 +34,7 @@ ENV = "NE_JAX_HOST_MEMORY"
 """Environment variable: ``huge_pages`` (default) or ``system`` (glibc's own settings)."""
 
 TUNABLE = "glibc.malloc.hugetlb=1"
-
-CONSOLE_SCRIPTS = {"ne-jax": "ne_jax.cli"}
-"""Console scripts (``pyproject.toml``) and the module each runs."""
-
-ENTRY_PACKAGES = ("ne_jax", "experiments")
-"""Packages whose modules, run as ``python -m <package>.<name>``, start again with huge pages."""
+"""The glibc tunable that gives large ``malloc`` mappings transparent huge pages."""
 
 
 def requested_policy(environ=None) -> str:
@@ -67,45 +65,23 @@ def tunables_env(environ=None) -> dict | None:
     return env
 
 
-def reexec_with_huge_pages(module: str, args: list[str]) -> None:
-    """Replace this process by ``python -m module *args`` started with :func:`tunables_env`, if it
-    has something to add; else return. Call it first thing in a command-line entry point."""
+def restart_with_huge_pages(orig_argv: list[str] | None = None) -> None:
+    """Replace this process by its own command line (``orig_argv``, default ``sys.orig_argv``: the
+    interpreter's, so ``ne-jax train ...``, ``python -m experiments.<name> ...`` and ``python
+    script.py ...`` all start again as they were started) under :func:`tunables_env`, if that adds
+    something; else return. For a program's entry point, first thing (the program starts over);
+    ``ValueError`` for a bad ``NE_JAX_HOST_MEMORY``, ``RuntimeError`` for an interactive interpreter
+    (no command line to start again: start it with ``GLIBC_TUNABLES`` instead)."""
     env = tunables_env()
-    if env is not None:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os.execve(sys.executable, [sys.executable, "-m", module, *args], env)
-
-
-def entry_point(orig_argv: list[str]) -> tuple[str, list[str]] | None:
-    """``(module, args)`` when ``orig_argv`` (the interpreter's command line, ``sys.orig_argv``) runs
-    one of :data:`CONSOLE_SCRIPTS` or ``python [options] -m <package>.<name> [args]`` for a package of
-    :data:`ENTRY_PACKAGES`, else ``None`` (imported by a test, a notebook, another program)."""
-    if len(orig_argv) > 1 and not orig_argv[1].startswith("-"):  # a script: a console script?
-        module = CONSOLE_SCRIPTS.get(os.path.basename(orig_argv[1]))
-        return (module, orig_argv[2:]) if module else None
-    if "-m" not in orig_argv[1:]:
-        return None
-    i = orig_argv.index("-m", 1)
-    if i + 1 >= len(orig_argv) or not orig_argv[i + 1].startswith(tuple(p + "." for p in ENTRY_PACKAGES)):
-        return None
-    return orig_argv[i + 1], orig_argv[i + 2:]
-
-
-def reexec_entry_point() -> None:
-    """:func:`reexec_with_huge_pages` when this process's command line runs an entry point
-    (:func:`entry_point`); ``import ne_jax`` calls it before JAX loads. A bad ``NE_JAX_HOST_MEMORY``
-    ends the process with a one-line error (exit status 2)."""
-    run = entry_point(list(getattr(sys, "orig_argv", [])))
-    if run is None:
+    if env is None:
         return
-    try:
-        reexec_with_huge_pages(*run)
-    except ValueError as e:
-        name = next((k for k, v in CONSOLE_SCRIPTS.items() if v == run[0]), run[0])
-        print(f"{name}: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    argv = list(sys.orig_argv if orig_argv is None else orig_argv)
+    if len(argv) < 2 or argv[1] == "-":
+        raise RuntimeError(f"huge pages: this interpreter has no command line to start again ({argv!r}); "
+                           f"start Python with GLIBC_TUNABLES={TUNABLE} instead")
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execve(sys.executable, [sys.executable, *argv[1:]], env)
 
 
-__all__ = ["CONSOLE_SCRIPTS", "ENTRY_PACKAGES", "ENV", "TUNABLE", "entry_point", "reexec_entry_point",
-           "reexec_with_huge_pages", "requested_policy", "tunables_env"]
+__all__ = ["ENV", "TUNABLE", "requested_policy", "restart_with_huge_pages", "tunables_env"]

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import os
 import sys
 import time
 from pathlib import Path
@@ -312,8 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ne-jax", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--host-devices", type=int, default=None, metavar="N",
-                        help="CPU only: split rays over N host devices (sets NE_JAX_HOST_DEVICES; default: one per "
-                             "usable core; 1 opts out; a count given to JAX itself in XLA_FLAGS wins)")
+                        help="CPU only: split rays over N host devices (default: NE_JAX_HOST_DEVICES, else one per "
+                             "usable core; 1: one device; a count given to JAX itself in XLA_FLAGS wins)")
     multi = parser.add_argument_group("multi-host (jax.distributed; one process per host, the same flags on each)")
     multi.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="address of process 0")
     multi.add_argument("--num-processes", type=int, default=1, help="number of processes (hosts)")
@@ -444,15 +443,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run ``ne-jax`` with ``argv`` (default: the command line); returns the exit status.
+
+    It sets its process up first (:func:`ne_jax.setup`): one host device per usable core, or
+    ``--host-devices N``; and, run as the program (``ne-jax ...``, ``python -m ne_jax.cli ...``:
+    ``argv`` is ``None``), huge pages for XLA's scratch memory by starting itself again with
+    ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` where it lacks it. Called from Python with ``argv``,
+    it never starts the process again."""
     args = build_parser().parse_args(argv)
     try:
-        if args.host_devices is not None:  # before anything touches JAX's backends
-            from ne_jax._platform import ENV, configure_host_devices
+        if args.host_devices is not None and args.host_devices < 1:
+            raise ValueError(f"--host-devices: expected an integer >= 1 (1 opts out), found {args.host_devices}")
+        from ne_jax import setup
 
-            if args.host_devices < 1:
-                raise ValueError(f"--host-devices: expected an integer >= 1 (1 opts out), found {args.host_devices}")
-            os.environ[ENV] = str(args.host_devices)
-            configure_host_devices()
+        setup(args.host_devices, huge_pages=argv is None)  # before anything touches JAX's backends
         if args.coordinator is not None or args.num_processes != 1:
             from ne_jax.devices import initialize_distributed
 

@@ -13,8 +13,9 @@ the batch's mean.
 One code path: the renderer and the training step always run through the mesh, and one device is
 the mesh of size 1. :func:`default_mesh` spans every device JAX sees (all hosts' after
 :func:`initialize_distributed`): the accelerators on a GPU/TPU machine, and on a CPU one host
-device per usable core, which ``import ne_jax`` asks JAX for (:mod:`ne_jax._platform`;
-``NE_JAX_HOST_DEVICES=1`` or ``ne-jax --host-devices 1`` opts out). A ray batch must split evenly:
+device per usable core where the process was set up with ``ne_jax.setup()`` (as ``ne-jax`` is;
+:mod:`ne_jax._platform`; ``NE_JAX_HOST_DEVICES=1`` or ``ne-jax --host-devices 1`` opts out), else
+JAX's default of one. A ray batch must split evenly:
 render chunks are padded to a multiple of the mesh size (:func:`padded_size`), and a training batch
 that does not split over the whole mesh runs on the largest leading part of it that it does split
 over (:func:`even_mesh`; e.g. 1024 rays on 3 devices use 2).

@@ -2,14 +2,16 @@
 runs out of memory mappings, and programs compiled for compile speed (XLA's optimisation level 0,
 loop emitters).
 
-``import ne_jax`` gives JAX one host device per usable CPU core (:mod:`ne_jax._platform`). The
-suite keeps one: ``bash run.sh test`` runs two pytest-xdist workers on a 2-core machine, so a
-device per core in each worker would oversubscribe the cores, and the tests' tolerances and
-timings were set on one device. ``NE_JAX_HOST_DEVICES=1`` is set here, before any test module
-imports ne_jax or starts JAX (and inherited by the subprocesses tests start), unless the
-environment already sets it; a count given to JAX itself still wins, which is how the multi-device
-step (``XLA_FLAGS=--xla_force_host_platform_device_count=4 pytest -m multidevice tests/devices``)
-gets its four devices.
+Importing ``ne_jax`` changes nothing, so the suite's own process runs on JAX's default of one
+CPU device. ``ne_jax.setup()``, which the CLI's ``main()`` and the experiments' entry points call,
+would ask for one per usable core; the suite keeps one: ``bash run.sh test`` runs two pytest-xdist
+workers on a 2-core machine, so a device per core in each would oversubscribe the cores, and the
+tests' tolerances and timings were set on one device. ``NE_JAX_HOST_DEVICES=1`` is set here unless
+the environment already sets it: read by the ``ne-jax`` and experiment processes tests start, and
+by ``ne_jax.cli.main([...])`` called in this process (which, once JAX has started on one device,
+refuses any other count); a count given to JAX itself still wins, which is how the multi-device step
+(``XLA_FLAGS=--xla_force_host_platform_device_count=4 pytest -m multidevice tests/devices``) gets
+its four devices.
 
 Every XLA:CPU executable holds a few memory mappings of its own, and JAX keeps each one it
 compiled for as long as the process lives. A worker that runs hundreds of test files compiles

@@ -1,5 +1,6 @@
-"""Huge pages for XLA:CPU's scratch memory: the tunable's effect, when ``ne-jax`` starts itself again
-with it, the ``NE_JAX_HOST_MEMORY=system`` opt-out, and a bad value naming the variable.
+"""Huge pages for XLA:CPU's scratch memory: the tunable's effect, how ``ne_jax.setup(huge_pages=True)``
+starts the process again with it (and only ``ne-jax`` run as the program asks), the
+``NE_JAX_HOST_MEMORY=system`` opt-out, and a bad value naming the variable.
 
 glibc reads its tunables when a process starts, so the effect is checked in fresh Python processes:
 a worker thread (as XLA:CPU runs a device's program) allocates, touches and frees a 100 MB block
@@ -18,7 +19,7 @@ import sys
 import pytest
 
 from ne_jax import _host_memory
-from ne_jax._host_memory import ENV, TUNABLE, entry_point, reexec_with_huge_pages, requested_policy, tunables_env
+from ne_jax._host_memory import ENV, TUNABLE, requested_policy, restart_with_huge_pages, tunables_env
 
 _PROBE = """
 import ctypes, json, resource, threading
@@ -84,33 +85,53 @@ def test_the_environment_to_start_again_with(monkeypatch):
     assert tunables_env({}) is None
 
 
-def test_reexec_replaces_the_process_only_when_it_adds_something(monkeypatch):
+def test_restart_replaces_the_process_only_when_it_adds_something(monkeypatch):
+    """The same command line (the interpreter's, so a console script or ``-m`` run starts again as
+    it was started) with the tunable added; nothing to add, nothing done; no command line, an error."""
     calls = []
     monkeypatch.setattr(os, "execve", lambda exe, argv, env: calls.append((exe, argv, env)))
     monkeypatch.setattr(_host_memory, "_is_glibc", lambda: True)
     monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
     monkeypatch.delenv(ENV, raising=False)
-    reexec_with_huge_pages("ne_jax.cli", ["train", "scene", "--out", "run"])
+    restart_with_huge_pages(["/venv/bin/python3", "/venv/bin/ne-jax", "train", "scene", "--out", "run"])
     ((exe, argv, env),) = calls
-    assert exe == sys.executable and argv == [sys.executable, "-m", "ne_jax.cli", "train", "scene", "--out", "run"]
+    assert exe == sys.executable and argv == [sys.executable, "/venv/bin/ne-jax", "train", "scene", "--out", "run"]
     assert env["GLIBC_TUNABLES"] == TUNABLE
+    with pytest.raises(RuntimeError, match="no command line to start again"):
+        restart_with_huge_pages(["python"])  # an interactive interpreter
     monkeypatch.setenv(ENV, "system")
-    reexec_with_huge_pages("ne_jax.cli", [])
+    restart_with_huge_pages(["python", "-m", "ne_jax.cli"])
+    monkeypatch.setenv(ENV, "huge_pages")
+    monkeypatch.setenv("GLIBC_TUNABLES", TUNABLE)  # started with it: no loop
+    restart_with_huge_pages(["python", "-m", "ne_jax.cli"])
     assert len(calls) == 1
 
 
-def test_entry_points_are_the_console_script_and_dash_m_runs():
-    """``import ne_jax`` starts again for ``ne-jax`` and ``python [options] -m ne_jax.<name>`` /
-    ``experiments.<name>``; imports from tests, scripts and other programs are left alone."""
-    assert entry_point(["/venv/bin/python", "/venv/bin/ne-jax", "train", "scene"]) == ("ne_jax.cli", ["train", "scene"])
-    assert entry_point(["python", "-m", "experiments.train_benchmark", "--preset", "tiny"]) == (
-        "experiments.train_benchmark", ["--preset", "tiny"])
-    assert entry_point(["python", "-u", "-X", "dev", "-m", "ne_jax.cli", "view"]) == ("ne_jax.cli", ["view"])
-    assert entry_point(["python", "-m", "pytest", "tests", "-m", "slow"]) is None
-    assert entry_point(["python", "experiments/profile_hot_path.py", "--whole-only"]) is None
-    assert entry_point(["python", "-c", "import ne_jax"]) is None
-    assert entry_point(["python", "-m"]) is None
-    assert entry_point(["python"]) is None
+@pytest.mark.skipif(not _GLIBC, reason="glibc")
+def test_setup_with_huge_pages_starts_the_program_again_once_with_the_tunable():
+    code = ("import os, ne_jax; print('started', os.getpid(), flush=True); ne_jax.setup(huge_pages=True); "
+            "print('tunables', os.environ['GLIBC_TUNABLES'])")
+    env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", ENV)}
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "JAX_PLATFORMS": "cpu"}, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.split()
+    assert lines[0::2] == ["started", "started", "tunables"]  # one restart (the same process), then on
+    assert lines[1] == lines[3] and lines[-1] == TUNABLE
+
+
+def test_only_the_program_ne_jax_starts_itself_again(monkeypatch):
+    """``ne-jax ...`` (``main()`` reading the command line) asks for huge pages; ``main([...])``
+    called from Python never starts the caller's process again."""
+    from ne_jax import _platform
+    from ne_jax.cli import main
+
+    asked = []
+    monkeypatch.setattr(_platform, "restart_with_huge_pages", lambda: asked.append(True))
+    command = ["--host-devices", "1", "export", "/nonexistent", "--out", "x.ply"]
+    assert main(command) == 2 and asked == []  # no such run
+    monkeypatch.setattr(sys, "argv", ["ne-jax", *command])
+    assert main() == 2 and asked == [True]
 
 
 @pytest.mark.parametrize("env, expected", [({}, "huge_pages"), ({ENV: " Huge_Pages "}, "huge_pages"),
@@ -126,5 +147,6 @@ def test_an_unknown_policy_names_the_variable():
 
 def test_the_command_line_names_a_bad_policy():
     env = {**os.environ, ENV: "keep"}
-    out = subprocess.run([sys.executable, "-m", "ne_jax.cli", "--help"], env=env, capture_output=True, text=True)
-    assert out.returncode == 2 and f"ne-jax: error: {ENV}: expected 'huge_pages'" in out.stderr
+    out = subprocess.run([sys.executable, "-m", "ne_jax.cli", "export", "/nonexistent", "--out", "x.ply"], env=env,
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and f"ne-jax export: error: {ENV}: expected 'huge_pages'" in out.stderr
