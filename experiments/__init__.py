@@ -4,9 +4,8 @@ Run one from the repository root as ``python -m experiments.<name> [args]`` (``-
 arguments). Results go to ``experiments/results/``; each records the commit, the config key(s) and
 the command that re-runs it. Shared helpers live in :mod:`experiments.common`.
 
-Started that way, an experiment runs with huge pages for XLA's scratch memory, as ``ne-jax`` does
-(:mod:`ne_jax._host_memory`): importing ``ne_jax`` first starts the process again with them when it
-was started without (``NE_JAX_HOST_MEMORY=system`` keeps glibc's defaults).
+Each module's entry point (its ``if __name__ == "__main__"`` block, not ``main()``, which tests call
+in their own process) sets the process up as ``ne-jax`` does, with ``ne_jax.setup(huge_pages=True)``:
+one host device per usable core, and huge pages for XLA's scratch memory, starting the process
+again with them when it was started without (``NE_JAX_HOST_MEMORY=system`` keeps glibc's defaults).
 """
-
-import ne_jax  # noqa: F401  (started as `python -m experiments.<name>`, this starts the process again with huge pages)

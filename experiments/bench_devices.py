@@ -4,10 +4,11 @@ timed in one run.
     python -m experiments.bench_devices                   # 1 device, one per core, two per core
     python -m experiments.bench_devices --rounds 1 --extra 0
 
-``import ne_jax`` gives JAX one host device per usable core (``ne_jax/_platform.py``) and the rays
-split over them; ``NE_JAX_HOST_DEVICES=1`` opts out. The device count is fixed per process, so
-each setting runs in its own Python process: ``1`` (``NE_JAX_HOST_DEVICES=1``), ``default``
-(nothing set: what ``import ne_jax`` chooses) and, with ``--extra`` (default 2), ``extra x cores``
+``ne_jax.setup()`` (called by ``ne-jax`` and by this module's entry point) gives JAX one host
+device per usable core (``ne_jax/_platform.py``) and the rays split over them;
+``NE_JAX_HOST_DEVICES=1`` opts out. The device count is fixed per process, so each setting runs in
+its own Python process: ``1`` (``NE_JAX_HOST_DEVICES=1``), ``default`` (nothing set: what
+``ne_jax.setup()`` chooses) and, with ``--extra`` (default 2), ``extra x cores``
 devices. Each process builds the same randomly initialised ``tiny`` model (the preset's render,
 train and sampler configs; a bumpy-sphere cloud of the preset's 20,000 points) and measures
 
@@ -44,8 +45,7 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     import jax
     import jax.numpy as jnp
 
-    import ne_jax  # noqa: F401  (first: the host device count is set on import)
-    from ne_jax._platform import usable_cores
+    from ne_jax._platform import usable_cores  # the count: ne_jax.setup() in the entry point, before this
     from ne_jax.benchmark.generate import get_preset
     from ne_jax.data.cameras import orbit_cameras
     from ne_jax.data.rays import Camera, camera_rays
@@ -197,4 +197,7 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
+    import ne_jax
+
+    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
     main()

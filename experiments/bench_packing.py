@@ -89,4 +89,7 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
+    import ne_jax
+
+    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
     main()

@@ -606,4 +606,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    import ne_jax
+
+    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
     sys.exit(main())

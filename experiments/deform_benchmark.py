@@ -275,4 +275,7 @@ def write_figure(out_name: str, figure: dict, variants) -> None:
 
 
 if __name__ == "__main__":
+    import ne_jax
+
+    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
     main()

@@ -403,4 +403,8 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
+    import ne_jax
+
+    if hasattr(ne_jax, "setup"):  # a --whole-only child may run a reference ne_jax that sets up on import
+        ne_jax.setup(huge_pages="--whole-only" not in sys.argv)  # a child's environment is _child's
     main()

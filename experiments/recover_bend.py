@@ -195,4 +195,7 @@ def plot(result: dict, path: Path) -> None:
 
 
 if __name__ == "__main__":
+    import ne_jax
+
+    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
     main()

@@ -203,4 +203,7 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
 
 
 if __name__ == "__main__":
+    import ne_jax
+
+    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
     main()

@@ -1,8 +1,10 @@
-"""Every experiment module imports, and a few answer ``python -m experiments.<name> --help``."""
+"""Every experiment module imports without starting JAX, sets its process up in its entry point, and a
+few answer ``python -m experiments.<name> --help``."""
 
 from __future__ import annotations
 
 import importlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +18,27 @@ MODULES = sorted(p.stem for p in (ROOT / "experiments").glob("*.py") if p.stem !
 @pytest.mark.parametrize("name", MODULES)
 def test_imports(name):
     importlib.import_module(f"experiments.{name}")
+
+
+def test_imports_leave_jax_unstarted_for_the_entry_points_setup():
+    """``ne_jax.setup()`` runs in an entry point after its module's imports: none may start JAX."""
+    env = {k: v for k, v in os.environ.items() if k not in ("NE_JAX_HOST_DEVICES", "XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
+    code = ("import importlib, jax, ne_jax\n"
+            f"for name in {MODULES!r}:\n    importlib.import_module('experiments.' + name)\n"
+            "ne_jax.setup(host_devices=3)\nprint(len(jax.devices()))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env={**env, "JAX_PLATFORMS": "cpu"})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-1] == "3"
+
+
+def test_every_entry_point_sets_its_process_up():
+    """Each ``if __name__ == "__main__"`` block calls ``ne_jax.setup`` before ``main()``, as ``ne-jax`` does."""
+    for name in MODULES:
+        text = (ROOT / "experiments" / f"{name}.py").read_text()
+        if "__main__" in text:
+            block = text[text.index('if __name__ == "__main__":'):]
+            assert "ne_jax.setup(" in block and block.index("ne_jax.setup(") < block.index("main()"), name
 
 
 @pytest.mark.parametrize("name", ["compare_runs", "bench_presets"])
