@@ -35,10 +35,14 @@ def edit_model(model: TrainedModel, edit: EditSource, out_dir: str | Path | None
     :func:`ne_jax.benchmark.edits.resolve_edit` gives the edit and its folder). ``label`` names the
     edit in the report (default: the edit's name or the file). With ``out_dir`` the edited model is
     written there as a run directory (atomically).
+
+    The edit is read in the capture's coordinates (``model.frame``: a file's positions, a named
+    benchmark edit's motion), as a user wrote it; for a NeRF Synthetic scene they are the model's.
     """
     label = label if label is not None else edit.name if isinstance(edit, Edit) else str(edit)
     report: dict = {}
-    points = apply_edit(model.state.point_state(model.scene.points), edit, cfg, report=report)
+    before = model.state.point_state(model.scene.points)
+    points = apply_edit(before, in_model_frame(before, edit, model.frame), cfg, report=report)
     run = model.run.replace(render=edited_render_config(model.run.render, ist))
     state = model.state.with_points(points, np.zeros(points.capacity, bool))
     edited = TrainedModel(run=run, state=state, scene=cfg.scene(model.scene, points, run.render),

@@ -252,6 +252,11 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
     run = fit_to_scene(run, scene_dir)
     split = load_split(scene_dir, "train", run.downscale) if split is None else split
     views = Views.from_split(split)
+    if run.render.shading.effects.background_model == "constant" and not (views.alpha < 0.99).any():
+        warnings.warn(f"{scene_dir}: every training pixel is opaque (the images hold their background) but the run "
+                      "models a constant background; declare the background sphere (background_model='sphere', "
+                      "e.g. ne_jax.train.effects.declare_effects(run.render, 'auto', scene_dir, split, None))",
+                      stacklevel=2)
     sampler = run.sampler
     pool = build_pool(sampler, split, run.background)  # fails early (named) on empty masks
     ckpt_dir = run_dir / CHECKPOINT_DIR
@@ -264,8 +269,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         log(f"restarting {run_dir} (resume=False): removed the earlier run's checkpoints {old} and its metrics")
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / CONFIG_FILE, json.dumps(config_to_json(run), indent=2) + "\n")
-    record = {**scene_record(scene_dir), "downscale": run.downscale, "train_views": list(split.file_paths)}
-    atomic_write_text(run_dir / SCENE_RECORD_FILE, json.dumps(_json_safe(record), indent=2) + "\n")
+    seen = {**scene_record(scene_dir), "downscale": run.downscale, "train_views": list(split.file_paths)}
+    atomic_write_text(run_dir / SCENE_RECORD_FILE, json.dumps(_json_safe(seen), indent=2) + "\n")
     k_points, k_model, k_batch, k_rounds = _keys(run.seed)
 
     history: list = []
@@ -368,7 +373,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
     finally:
         bar.close()
     return TrainedModel(run=run, state=state, scene=state.scene(scene), scene_dir=scene_dir, run_dir=run_dir,
-                        frame=Normalisation.from_dict(record["normalisation"]),
+                        frame=Normalisation.from_dict(seen["normalisation"]),
                         history=history, initial=initial)
 
 
