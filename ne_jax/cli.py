@@ -286,10 +286,11 @@ def _cmd_demo(args) -> int:
     edits = len(get_scene(next(iter(report["scenes"]))).edits)
     print(f"      {len(report['scenes'])} scenes x (original + {edits} edits) in {report['seconds']:.1f} s")
     scene_dir = out / "benchmark" / args.scene
-    run = get_run_preset("tiny").replace(seed=args.seed)
+    run, effects = _declared(get_run_preset("tiny").replace(seed=args.seed), scene_dir, "scene")  # as `train` does
     print(f"[2/4] training scene {args.scene!r} (preset 'tiny': {run.epochs} epochs x {run.steps_per_epoch} steps, "
           f"initial cloud by visual-hull carving)")
-    result = train(run, scene_dir, out / "run", resume=False)
+    print("      effects: " + ", ".join(f"{k}={v}" for k, v in effects["effects"].items()) + f" ({effects['source']})")
+    result = train(run, scene_dir, out / "run", resume=False, notes={"effects": effects})
     print("[3/4] evaluating the test views")
     ev = _evaluate(result, scene_dir, "test", out / "run" / "eval_test")
     _print_eval(ev, out / "run" / "eval_test")

@@ -1,6 +1,7 @@
 """Writing the benchmark: layout, determinism, cameras shared by edits, points, contact sheet, CLI."""
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ from ne_jax.benchmark.generate import generate_benchmark, generate_scene, list_v
 from ne_jax.cli import main
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.data.ply import read_ply
+from ne_jax.train import load_trained
 from ne_jax.viz import contact_sheet
 
 from tests.mini_presets import GEN_SCENES
@@ -118,6 +120,12 @@ def test_cli_demo_runs_every_stage_on_small_stand_ins(tmp_path, capsys, monkeypa
     assert (tmp_path / "contact_sheet.png").is_file() and (tmp_path / "run" / "orbit.gif").is_file()
     assert (tmp_path / "run" / "eval_test").is_dir()
     assert len(list_variants(tmp_path / "benchmark")) == 4 * 7  # original + six edits per scene
+    # the effects blocks' scene.json declares (specular off), as `ne-jax train` of the folder takes them
+    declared = json.loads((tmp_path / "benchmark" / "blocks" / "scene.json").read_text())["effects"]
+    notes = json.loads((tmp_path / "run" / "metrics.json").read_text())["notes"]["effects"]
+    assert notes["source"] == "scene.json" and notes["effects"]["specular"] == "off" and declared["specular"] is False
+    assert "effects: specular=off, background_model=constant (scene.json)" in out
+    assert not load_trained(tmp_path / "run").run.render.shading.effects.specular
 
 
 @pytest.mark.slow
