@@ -198,6 +198,19 @@ def _bsdf(surface: Surface, color: dict) -> dict:
     return {"type": "twosided", "bsdf": inner}
 
 
+@dataclass(frozen=True, eq=False)
+class FlatPart:
+    """A part :class:`PathTracer` adds as it is, without the splitting that resolves a scene part's
+    texture: ``vertices [V, 3]``, ``faces [F, 3]``, sRGB ``albedo [V, 3]`` per vertex (a texture the
+    mesh already resolves, e.g. one colour per cell on the cell's own four vertices) and its
+    :class:`Surface`."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    albedo: np.ndarray
+    surface: Surface
+
+
 class PathTracer:
     """Mitsuba 3 path tracer over one (edited) scene mesh; see the module docstring.
 
@@ -205,10 +218,13 @@ class PathTracer:
     textures), ``surfaces``: one :class:`Surface` per material (:func:`scene_surfaces`),
     ``environment``: a rotation ``[3, 3]`` of the environment (``None``: as defined),
     ``max_edge``: textured parts are split until no edge is longer (world units), ``spp``: samples
-    per pixel."""
+    per pixel, ``extra_parts``: :class:`FlatPart` s added as they are (the capture variant's ground),
+    ``visible_environment``: camera rays that miss every surface see the environment map (the film's
+    alpha is then 1 everywhere) instead of a transparent background."""
 
     def __init__(self, mesh: EditedMesh, materials: tuple[Material, ...], surfaces: tuple[Surface, ...],
-                 environment: np.ndarray | None = None, max_edge: float = 0.02, spp: int = 64):
+                 environment: np.ndarray | None = None, max_edge: float = 0.02, spp: int = 64,
+                 extra_parts: tuple[FlatPart, ...] = (), visible_environment: bool = False):
         if len(surfaces) != len(materials):
             raise ValueError(f"surfaces: expected one per material ({len(materials)}), found {len(surfaces)}")
         if spp < 1:
@@ -234,6 +250,11 @@ class PathTracer:
             linear = np.clip(albedo, 0.0, 1.0) ** GAMMA  # sRGB albedo to linear, as the ray caster does
             objects[f"part{i}"] = self._mesh(f"part{i}", values, faces, linear, surface)
             self.faces += len(faces)
+        for j, part in enumerate(extra_parts):
+            values = np.concatenate([part.vertices, M.vertex_normals(part.vertices, part.faces)], 1)
+            linear = np.clip(part.albedo, 0.0, 1.0) ** GAMMA
+            objects[f"extra{j}"] = self._mesh(f"extra{j}", values, part.faces, linear, part.surface)
+            self.faces += len(part.faces)
         emitter = {"type": "envmap", "bitmap": mi.Bitmap(environment_map())}
         if environment is not None:
             rot = np.eye(4)
@@ -241,7 +262,7 @@ class PathTracer:
             emitter["to_world"] = mi.ScalarTransform4f(rot.tolist())
         self.scene = mi.load_dict({
             "type": "scene",
-            "integrator": {"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True},
+            "integrator": {"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": not visible_environment},
             "environment": emitter,
             **objects,
         })
@@ -292,5 +313,5 @@ class PathTracer:
         return np.concatenate([display, alpha], -1).astype(np.float32)
 
 
-__all__ = ["SURFACES", "VARIANT", "PathTracer", "Surface", "environment_map", "environment_radiance",
+__all__ = ["SURFACES", "VARIANT", "FlatPart", "PathTracer", "Surface", "environment_map", "environment_radiance",
            "import_mitsuba", "pixel_footprint", "scene_surfaces", "subdivide", "surface_from_material"]
