@@ -3,6 +3,7 @@
     python -m experiments.make_benchmark                      # tiny and default presets
     python -m experiments.make_benchmark --presets tiny       # just tiny
     python -m experiments.make_benchmark --preset tiny_pt --out DIR   # the path-traced tiny set (Mitsuba 3)
+    python -m experiments.make_benchmark --preset tiny_capture --out DIR   # the same as captures (COLMAP, nerfstudio)
     python -m experiments.make_benchmark --preset default_pt --out DIR --scenes glossy cup --originals-only --resume
                                                               # two unedited scenes, continuing a stopped run
 
@@ -56,8 +57,9 @@ def main(argv=None) -> None:
         n_scenes = len(report["scenes"])
         n_edits = sum(edit is not None and scene in report["scenes"]  # over the scenes asked for
                       for scene, edit, _ in list_variants(root))
+        edit_train = preset.train_views if preset.edit_train_views is None else preset.edit_train_views
         images = (n_scenes * (preset.train_views + preset.val_views + preset.test_views)
-                  + n_edits * (preset.train_views + preset.test_views))
+                  + n_edits * (edit_train + preset.test_views))
         sheet = contact_sheet(root, RESULTS / f"benchmark_contact_sheet_{name}.png",
                               title=f"ne_jax procedural benchmark, preset {name!r} (test view at 45 degrees)")
         size = sum(p.stat().st_size for scene in report["scenes"] for p in (root / scene).rglob("*") if p.is_file())

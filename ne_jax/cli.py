@@ -330,7 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     mb = sub.add_parser("make-benchmark", help="generate the procedural editing benchmark")
-    mb.add_argument("--preset", default="tiny", choices=["tiny", "default"])
+    mb.add_argument("--preset", default="tiny", choices=["tiny", "default", "tiny_capture", "default_capture"])
     mb.add_argument("--out", required=True, help="output folder")
     mb.add_argument("--scenes", nargs="+", default=None, help="subset of scenes (default: all)")
     mb.add_argument("--seed", type=int, default=0)

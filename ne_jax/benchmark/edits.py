@@ -19,7 +19,10 @@ def _scene_meta(scene_dir: Path | None) -> dict:
 
 def benchmark_edit(scene_dir: str | Path | None, name: str) -> tuple[Edit, Path | None]:
     """The benchmark edit ``name`` of the scene in ``scene_dir`` (its ``scene.json`` names the scene)
-    and the folder of the edited scene's ground truth (``None`` when not generated).
+    and the folder of the edited scene's ground truth (``None`` when not generated). In a capture
+    scene (``scene.json`` with a ``ground``, :mod:`ne_jax.benchmark.capture`) the edit acts only on
+    the points above the ground (:func:`~ne_jax.benchmark.capture.objects_only`), as its ground
+    truth was rendered.
 
     Raises:
         EditError: ``scene_dir`` is not a benchmark scene, the scene has no edit ``name`` (the
@@ -34,6 +37,10 @@ def benchmark_edit(scene_dir: str | Path | None, name: str) -> tuple[Edit, Path 
     if name not in scene.edits:
         raise EditError(f"edit {name!r}: expected one of the edits of scene {scene.name!r}: {sorted(scene.edits)}")
     edit, truth = scene.edits[name], Path(scene_dir) / "edits" / name
+    if "ground" in meta:  # a capture scene: its edits move the objects, the ground stays
+        from ne_jax.benchmark.capture import objects_only
+
+        edit = objects_only(edit, meta["ground"]["objects_above"])
     if not (truth / "transforms_test.json").is_file():
         return edit, None
     made_for = _scene_meta(truth).get("edit_description")

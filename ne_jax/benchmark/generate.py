@@ -19,6 +19,9 @@ complete (written to a temporary sibling, then renamed). A long generation can b
 
 The ground truth is rendered by the preset's ``renderer`` (:data:`RENDERERS`): the ray caster
 (``tiny``, ``default``) or Mitsuba 3's path tracer (``tiny_pt``, ``default_pt``; needs ``mitsuba``).
+The capture presets (``tiny_capture``, ``default_capture``) write another layout: a COLMAP model
+and a nerfstudio copy of each scene, opaque images with the environment and a ground
+(:mod:`ne_jax.benchmark.capture`).
 """
 
 from __future__ import annotations
@@ -74,6 +77,13 @@ class BenchmarkPreset:
     """Every surface without highlights and reflections (a variant that needs no view-dependent colour)."""
     alpha: bool = True
     """False: images composited on white and saved without alpha (a variant that needs a background model)."""
+    capture: bool = False
+    """The capture variant (:mod:`ne_jax.benchmark.capture`): the path tracer with the environment
+    visible and a ground, written as a COLMAP model and a nerfstudio copy; no validation split, and
+    ``train_views`` such that every 8th image held out gives the ``test_views``."""
+    edit_train_views: int | None = None
+    """A capture preset's training views of each edit's ground truth: the first ones of the
+    capture's (``None``: all of them)."""
 
     def __post_init__(self):
         if self.renderer not in RENDERERS:
@@ -81,6 +91,16 @@ class BenchmarkPreset:
                              f"{sorted(RENDERERS)}")
         if self.renderer == "pathtrace" and self.spp < 1:
             raise ValueError(f"BenchmarkPreset.spp: the path tracer needs a positive sample count, found {self.spp}")
+        if self.capture:
+            if self.renderer != "pathtrace" or self.val_views or self.alpha:
+                raise ValueError("BenchmarkPreset.capture: expected the path tracer, no validation views and "
+                                 f"alpha=False, found {self.renderer!r}, {self.val_views} and {self.alpha}")
+            from ne_jax.benchmark.capture import view_order
+
+            view_order(self.train_views, self.test_views)  # raises unless every 8th image is a test view
+        if self.edit_train_views is not None and not (self.capture and 0 < self.edit_train_views <= self.train_views):
+            raise ValueError(f"BenchmarkPreset.edit_train_views: expected a capture preset and 1..{self.train_views} "
+                             f"views, found {self.edit_train_views} (capture={self.capture})")
 
     def record(self) -> dict:
         """The preset as scene.json and timings.json record it (a ray-cast preset without the path
@@ -88,7 +108,7 @@ class BenchmarkPreset:
         out = asdict(self)
         if self.renderer == "raycast":
             del out["renderer"], out["spp"]
-        for name, default in (("matte", False), ("alpha", True)):  # variants only
+        for name, default in (("matte", False), ("alpha", True), ("capture", False), ("edit_train_views", None)):
             if out[name] == default:
                 del out[name]
         return out
@@ -113,6 +133,14 @@ PRESETS = {
     # (seed-to-seed PSNR >= 40 dB on every scene, experiments/pathtraced_noise.py).
     "tiny_pt": BenchmarkPreset("tiny_pt", 64, 24, 4, 8, 1, 0.75, 20_000, renderer="pathtrace", spp=256),
     "default_pt": BenchmarkPreset("default_pt", 200, 100, 10, 20, 1, 1.0, 200_000, renderer="pathtrace", spp=256),
+    # The capture variants: the path-traced scenes and edits with the environment visible and a ground,
+    # as a COLMAP model and a nerfstudio copy (ne_jax.benchmark.capture). The test views are the *_pt
+    # presets'; 7 training views per test view, so that every 8th image held out is a test view. The
+    # edits' ground truth has the *_pt presets' training views (the first of the capture's).
+    "tiny_capture": BenchmarkPreset("tiny_capture", 64, 56, 0, 8, 1, 0.75, 20_000, renderer="pathtrace", spp=256,
+                                    alpha=False, capture=True, edit_train_views=24),
+    "default_capture": BenchmarkPreset("default_capture", 200, 140, 0, 20, 1, 1.0, 200_000, renderer="pathtrace",
+                                       spp=256, alpha=False, capture=True, edit_train_views=100),
 }
 
 
@@ -211,7 +239,13 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
     ``scene.json`` lists the ones made. With ``resume``, a finished scene already there with the same
     preset, seed and edits is kept (returning the timings it recorded), and every image is also saved
     under ``root/.<scene_name>.partial/`` as soon as it is rendered, so a generation stopped part way
-    continues from its last image with the same bytes; that folder goes when the scene is complete."""
+    continues from its last image with the same bytes; that folder goes when the scene is complete.
+    A capture preset (``preset.capture``) writes the capture layouts instead
+    (:func:`ne_jax.benchmark.capture.generate_scene`)."""
+    if preset.capture:
+        from ne_jax.benchmark import capture
+
+        return capture.generate_scene(scene_name, preset, root, seed, edits, resume)
     t0 = time.perf_counter()
     scene = S.get_scene(scene_name, preset.detail)
     names = list(scene.edits) if edits is None else list(edits)
@@ -317,11 +351,15 @@ def generate_benchmark(root, preset: str | BenchmarkPreset = "tiny", scenes=None
 
 
 def list_variants(root) -> list[tuple[str, str | None, Path]]:
-    """``(scene, edit or None, directory)`` for every scene and edit found under ``root``."""
+    """``(scene, edit or None, directory)`` for every scene and edit found under ``root``, each
+    directory in the NeRF Synthetic layout: a capture scene's original is its ``unedited/`` folder,
+    and its nerfstudio copy (``<scene>_ns``) is not listed again."""
     out = []
     for scene_dir in sorted(p for p in Path(root).iterdir() if (p / "scene.json").is_file()):
         meta = json.loads((scene_dir / "scene.json").read_text())
-        out.append((scene_dir.name, None, scene_dir))
+        if "copy_of" in meta:
+            continue
+        out.append((scene_dir.name, None, scene_dir / "unedited" if meta.get("layout") == "colmap" else scene_dir))
         for edit in meta.get("edits", {}):
             out.append((scene_dir.name, edit, scene_dir / "edits" / edit))
     return out
