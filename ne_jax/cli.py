@@ -4,7 +4,8 @@ Sub-commands:
   demo            the main job on the built-in default scene: make the tiny procedural benchmark,
                   train one scene, evaluate its test views and render an orbit video
   make-benchmark  generate the procedural editing benchmark for a preset
-  train           train a model of a scene folder (NeRF Synthetic layout) into a run directory
+  process-images  structure from motion: a folder of photos to a COLMAP scene folder
+  train           train a model of a scene folder (NeRF Synthetic, nerfstudio, COLMAP, NSVF, LLFF)
   eval            PSNR, SSIM and LPIPS of a trained run on a split (per view and mean), with the images
   render          render a trained run's split views to PNGs, or a camera orbit to MP4/GIF
   export          write a trained run's point cloud (normals, confidences, colours) to PLY
@@ -40,6 +41,17 @@ def _cmd_make_benchmark(args) -> int:
     return 0
 
 
+def _cmd_process_images(args) -> int:
+    from ne_jax.data.sfm import process_images
+
+    report = process_images(args.photos, args.out, matcher=args.matcher, camera_model=args.camera_model,
+                            single_camera=not args.camera_per_image, max_image_size=args.max_image_size,
+                            overwrite=args.overwrite, verbose=args.verbose)
+    print(f"process-images: {report['registered']} of {report['images']} photos registered, {report['points']} "
+          f"points -> {args.out} (a COLMAP scene: `ne-jax train {args.out} --out RUN`)")
+    return 0
+
+
 def _run_config(args):
     """The preset with the command line's changes applied (``--set`` last)."""
     from ne_jax.config_json import config_set
@@ -50,6 +62,8 @@ def _run_config(args):
         run = run.with_schedule(args.epochs, args.steps_per_epoch)
     if args.batch_size is not None:
         run = run.replace(sampler=run.sampler.replace(batch_size=args.batch_size))
+    if args.downscale != 1:
+        run = run.replace(downscale=args.downscale)
     if args.init != run.init.source or args.ply is not None:
         if args.ply is not None and args.init != "ply":
             raise ValueError(f"--ply: given with --init {args.init!r}; use --init ply")
@@ -61,11 +75,15 @@ def _run_config(args):
 def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True) -> dict:
     """Render and score a split of ``model``; write ``out/metrics.json`` and ``out/images/*.png``."""
     from ne_jax.atomic import atomic_write_json
-    from ne_jax.data.nerf_synthetic import composite, load_split
+    from ne_jax.data.nerf_synthetic import composite
+    from ne_jax.data.scene import check_recorded_split, load_split
     from ne_jax.eval import evaluate_model, save_images
     from ne_jax.eval.regions import error_map_picture, split_regions
 
-    split = load_split(scene_dir, split_name)
+    split = load_split(scene_dir, split_name, model.run.downscale)
+    if model.run_dir is not None and model.scene_dir is not None and \
+            Path(scene_dir).resolve() == Path(model.scene_dir).resolve():  # the scene it was trained on
+        check_recorded_split(model.run_dir, split)
     report, images, depths = evaluate_model(model, split, progress=progress, with_depth=True)
     report["regions"], labels = split_regions(split, images, model.background, depths=depths)
     truth = composite(split.images, report["background"])
@@ -90,15 +108,18 @@ def _print_eval(report: dict, out: Path) -> None:
 
 def _declared(run, scene_dir: Path, spec: str):
     """``run`` with the effects ``spec`` declares (:mod:`ne_jax.train.effects`), and the record."""
-    from ne_jax.train.effects import declare_effects
+    from ne_jax.data.scene import detect_format
+    from ne_jax.train.effects import declare_effects, scene_effects
 
+    if spec.strip() == "scene" and scene_effects(scene_dir) is None and detect_format(scene_dir) != "nerf_synthetic":
+        spec = "auto"  # a capture declares nothing: decide from its images (a background sphere where opaque)
     split = cloud = None
-    if spec.strip() == "auto":  # decided from the training views and the carved cloud
-        from ne_jax.data.nerf_synthetic import load_split
+    if spec.strip() == "auto":  # decided from the training views and the initial cloud
+        from ne_jax.data.scene import load_split
         from ne_jax.pointcloud.init import CarvingError, Views
         from ne_jax.train.loop import initial_cloud
 
-        split = load_split(scene_dir, "train")
+        split = load_split(scene_dir, "train", run.downscale)
         with contextlib.suppress(CarvingError):  # images without masks: no cloud, specular stays on
             cloud = initial_cloud(run.init, scene_dir, Views.from_split(split)).xyz
     render, record = declare_effects(run.render, spec, scene_dir, split, cloud)
@@ -106,6 +127,7 @@ def _declared(run, scene_dir: Path, spec: str):
 
 
 def _cmd_train(args) -> int:
+    from ne_jax.data.scene import split_names
     from ne_jax.train.loop import train
 
     scene_dir, out = Path(args.scene), Path(args.out)
@@ -114,7 +136,7 @@ def _cmd_train(args) -> int:
     t0 = time.perf_counter()
     result = train(run, scene_dir, out, resume=not args.restart, progress=not args.quiet, notes={"effects": effects})
     print(f"trained {run.total_steps} steps in {time.perf_counter() - t0:.1f} s -> {out}")
-    if not args.no_eval and (scene_dir / "transforms_test.json").exists():
+    if not args.no_eval and "test" in split_names(scene_dir):
         report = _evaluate(result, scene_dir, "test", out / "eval_test", progress=not args.quiet)
         _print_eval(report, out / "eval_test")
     return 0
@@ -146,13 +168,13 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_render(args) -> int:
-    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.data.scene import load_split
     from ne_jax.eval import orbit_cameras_for, render_views, save_images, write_video
 
     model, scene_dir = _load(args)
     run = model.run
     background = args.background or run.background
-    split = load_split(_need_scene(scene_dir, args.run), args.split)
+    split = load_split(_need_scene(scene_dir, args.run), args.split, run.downscale)
     if args.orbit:
         cameras = orbit_cameras_for(split, args.orbit, args.elevation)
         frames = render_views(run.render, model.state.params, model.scene, cameras, background, run.sampler.near,
@@ -174,8 +196,9 @@ def _cmd_export(args) -> int:
     from ne_jax.pointcloud.export import export_ply
 
     model, _ = _load(args)
-    n = export_ply(args.out, model.run.render.shading, model.state.params, model.scene.points)
-    print(f"exported {n} points (xyz, normals, confidence, colour, index) -> {args.out}")
+    n = export_ply(args.out, model.run.render.shading, model.state.params, model.scene.points, model.frame)
+    frame = "" if model.frame.is_identity else ", in the capture's coordinates"
+    print(f"exported {n} points (xyz, normals, confidence, colour, index{frame}) -> {args.out}")
     return 0
 
 
@@ -220,14 +243,14 @@ def _cmd_finetune(args) -> int:
 
 
 def _cmd_morph(args) -> int:
-    from ne_jax.data.nerf_synthetic import load_split
+    from ne_jax.data.scene import load_split
     from ne_jax.eval import orbit_cameras_for
     from ne_jax.morph import MorphSettings, morph_models
     from ne_jax.train.model import load_trained
 
     a, b = load_trained(args.run_a), load_trained(args.run_b)
     scene_dir = _need_scene(Path(args.scene) if args.scene else a.scene_dir, args.run_a)
-    split = load_split(scene_dir, args.split)
+    split = load_split(scene_dir, args.split, a.run.downscale)
     if not 0 <= args.view < split.num_views:
         raise ValueError(f"--view: expected a view of the {args.split} split in [0, {split.num_views}), "
                          f"found {args.view}")
@@ -336,22 +359,41 @@ def build_parser() -> argparse.ArgumentParser:
     mb.add_argument("--seed", type=int, default=0)
     mb.set_defaults(func=_cmd_make_benchmark)
 
+    pi = sub.add_parser("process-images", help="photos to a COLMAP scene folder (structure from motion with pycolmap)")
+    pi.add_argument("photos", help="a folder of .png/.jpg photos of one scene")
+    pi.add_argument("--out", required=True, help="the scene folder to write (images/, sparse/0/, sfm.json)")
+    pi.add_argument("--matcher", default="exhaustive", choices=["exhaustive", "sequential"],
+                    help="exhaustive (every pair; default) or sequential (neighbours in name order: video frames)")
+    pi.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                    help="COLMAP camera model (default SIMPLE_RADIAL; PINHOLE for undistorted images)")
+    pi.add_argument("--camera-per-image", action="store_true",
+                    help="intrinsics per image size and camera (default: one camera shared by every photo)")
+    pi.add_argument("--max-image-size", type=int, default=3200, help="longest side features are found at")
+    pi.add_argument("--overwrite", action="store_true", help="replace an existing --out folder once done")
+    pi.add_argument("--verbose", action="store_true", help="COLMAP's own log on stderr")
+    pi.set_defaults(func=_cmd_process_images)
+
     tr = sub.add_parser("train", help="train a model of a scene folder")
-    tr.add_argument("scene", help="scene folder (NeRF Synthetic layout: transforms_train.json, images)")
+    tr.add_argument("scene", help="scene folder: NeRF Synthetic, nerfstudio (transforms.json), COLMAP (sparse/0 + "
+                                  "images/), NSVF / Tanks and Temples, or LLFF (poses_bounds.npy); docs/captures.md")
     tr.add_argument("--out", required=True, help="run directory (resumed from its latest checkpoint if it has one)")
     tr.add_argument("--preset", default="tiny", choices=["tiny", "default", "paper"])
     tr.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
     tr.add_argument("--steps-per-epoch", type=int, default=None, help="override the preset's steps per epoch")
     tr.add_argument("--batch-size", type=int, default=None, help="override the preset's rays per batch")
-    tr.add_argument("--init", default="carving", choices=["carving", "ply", "ground_truth"],
-                    help="initial cloud: visual-hull carving (default), a PLY (--ply), or the benchmark's "
-                         "ground-truth samples (labelled in the results)")
+    tr.add_argument("--downscale", type=int, default=1, metavar="N",
+                    help="read the images downscaled by the integer N (every command on the run follows it)")
+    tr.add_argument("--init", default="auto", choices=["auto", "carving", "sfm", "ply", "ground_truth"],
+                    help="initial cloud: auto (default: the capture's SfM points where it has them, else carving "
+                         "from the alpha masks), visual-hull carving, the SfM points, a PLY (--ply), or the "
+                         "benchmark's ground-truth samples (labelled in the results)")
     tr.add_argument("--ply", default=None, help="the initial cloud for --init ply")
     tr.add_argument("--background", default="white", choices=["white", "black"])
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--effects", default="scene", metavar="SPEC",
                     help="effects the model computes: scene (what the scene folder's scene.json declares, else the "
-                         "preset's; default), auto (decided from the training views), all, or pairs such as "
+                         "preset's for a NeRF Synthetic folder and auto for a capture; default), auto (decided "
+                         "from the training views), all, or pairs such as "
                          "specular=off,background_model=sphere (specular=on|off, background_model=constant|sphere)")
     tr.add_argument("--set", action="append", default=[], metavar="FIELD.PATH=VALUE",
                     help="change one field of the preset's RunConfig (repeatable), e.g. "
