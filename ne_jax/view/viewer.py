@@ -63,8 +63,9 @@ class Viewer:
 
     ``Viewer(model_or_run_dir, port=8080, host="127.0.0.1")`` starts serving at once (also from a
     notebook); open :attr:`url` in a browser, :meth:`stop` ends it. ``port=0`` picks a free port.
-    ``warm_up`` (default on) compiles the edit path in the background at start (:attr:`warmed` is set
-    when done), so the first edit does not wait for it.
+    ``warm_up`` (default on) compiles in the background at start, in the order a user meets them:
+    the points' colours, the first frame, then the edit path (:attr:`warmed` is set when done), while
+    the page already shows the point cloud and the status line says what is being compiled.
 
     Attributes read by tests and notebooks: :attr:`edit` (the :class:`~ne_jax.view.edits.ViewEdit`
     so far), :attr:`selection` (``[K]`` slots), :attr:`frames` (frames sent), :attr:`last_frame`
@@ -105,7 +106,8 @@ class Viewer:
 
         alive = np.asarray(self._points.alive)
         self._center, self._extent = _bbox(np.asarray(self._points.xyz)[alive])
-        self._colors = self._point_colors()
+        # the page shows the cloud at once, shaded by confidence; the model's colours (a compile) follow
+        self._colors = self._point_colors() if not warm_up else self._confidence_colors()
         self._gizmo_guard = False
         self._move_pivot = np.zeros(3)
 
@@ -213,6 +215,11 @@ class Viewer:
         return report
 
     # --------------------------------------------------------------- internals
+    def _confidence_colors(self) -> np.ndarray:
+        """``[C, 3]`` uint8 grey levels by confidence: shown until :meth:`_point_colors` is compiled."""
+        conf = np.clip(np.nan_to_num(np.asarray(self._points.confidence, np.float32)), 0.0, 1.0)
+        return np.repeat(np.round(80 + 150 * conf).astype(np.uint8)[:, None], 3, axis=1)
+
     def _point_colors(self) -> np.ndarray:
         from ne_jax.pointcloud.export import point_colors
 
@@ -271,18 +278,28 @@ class Viewer:
         cam.up = (0.0, 0.0, 1.0)
 
     def _warm_up(self) -> None:
-        """Compile the edit path before the first edit (a background thread; :attr:`warmed` is set
-        when done): the IST and the carried tree's traversal, through an identity edit rendered once.
-        Without it the first edit waits for these compilations (tens of seconds on a CPU)."""
+        """Compile, in a background thread, what a user meets first (:attr:`warmed` is set when
+        done): the points' colours, a frame of the model (so the first browser frame follows at
+        once), then the edit path (the IST and the carried tree's traversal, through an identity
+        edit rendered once). The status line says which is compiling."""
         from ne_jax.edit.model import edit_model
 
         try:
-            edited, _ = edit_model(self.model, self.edit.rows(), ist=True, label="warm-up")
+            self._set_status("compiling: the points' colours (the cloud is shaded by confidence until then)")
+            self._colors = self._point_colors()
+            with self._lock:
+                self._show_points()
             # a view of the whole cloud, so that the rays that meet it are rendered (and compiled)
             eye = self._center + self._extent * np.array([0.0, -1.5, 0.75])
             camera = camera_from_viewer(look_at(eye, self._center), eye, 0.7, self.max_side, self.max_side)
+            self._set_status("compiling: the renderer (the first frame follows when it is done)")
+            with self._render_lock:
+                render_frame(self.model, camera)
+            self._set_status("compiling: the edit path (the first edit waits for it)")
+            edited, _ = edit_model(self.model, self.edit.rows(), ist=True, label="warm-up")
             with self._render_lock:
                 render_frame(edited, camera)
+            self._set_status("ready")
         except Exception:  # the viewer works without it; the first edit then compiles
             if not self._stopped:
                 self._set_status("warm-up failed: " + traceback.format_exc(limit=2).splitlines()[-1])
@@ -430,7 +447,7 @@ class Viewer:
             self._gui_max = gui.add_slider("Max side (px)", 32, 1024, 32, min(max(32, self.max_side // 32 * 32), 1024))
             self._gui_points = gui.add_checkbox("Point cloud", False)
             self._gui_cameras = gui.add_checkbox("Training cameras", False)
-            self._gui_time = gui.add_markdown("render: -")
+            self._gui_time = gui.add_markdown("render: waiting for the first frame (compiling)")
         with gui.add_folder("Select"):
             self._gui_region = gui.add_dropdown("Region", ("box", "sphere"), initial_value="box")
             self._gui_region_size = gui.add_slider("Region size", round(0.02 * self._extent, 4),
