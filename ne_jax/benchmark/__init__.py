@@ -6,6 +6,7 @@ meshes        triangle meshes: lathes, boxes, tubes, built pre-cut where a scene
 scenes        the four scenes (materials, textures, parts) and their edits by name
 raycaster     the ground-truth renderer (Blinn-Phong ray caster with shadows and a sky reflection)
 generate      writing a preset of scenes and their edited ground truth to disk (NeRF Synthetic layout)
+capture       the capture variant: environment visible, a ground, COLMAP and nerfstudio layouts, SfM points
 edits         a scene's edits by name, looked up from the folder a model was trained on
 variants      the method's variants and ablations (the rows of the deformation benchmark)
 ============  ====================================================================================

@@ -19,6 +19,8 @@ tinted. What it costs is Monte Carlo noise (``spp`` samples per pixel; the noise
 * **Images** (:meth:`PathTracer.render`): the ray caster's contract: straight-alpha display RGBA
   ``[H, W, 4]`` in ``[0, 1]`` (alpha from the film's alpha channel, colour ``linear^(1/2.2)``).
   Deterministic for a seed (Mitsuba's ``scalar_rgb`` variant, a fixed sampler seed per image).
+  With ``visible_environment`` (the capture variant, :mod:`ne_jax.benchmark.capture`) the
+  environment shows behind the objects and alpha is 1; ``extra_parts`` adds parts such as its ground.
 
 The variant is ``scalar_rgb``: it runs everywhere and its images do not depend on the machine's LLVM
 (``llvm_ad_rgb`` would be 2-3x faster but needs libLLVM >= 16, and gives other bytes for a seed).
