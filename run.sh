@@ -57,12 +57,15 @@ setup() {
     echo "run.sh: creating .venv with $("$py" --version)" >&2
     "$py" -m venv .venv
   fi
-  local stamp=".venv/.ne_jax_installed" want
-  want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
+  # An NVIDIA GPU (nvidia-smi runs and finds one) adds JAX's CUDA 12 plugin (the cuda12 extra); the stamp
+  # names the extras, so a machine that gains or loses a GPU installs again.
+  local stamp=".venv/.ne_jax_installed" want extras="test"
+  if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then extras="test,cuda12"; fi
+  want="$(sha256sum pyproject.toml | cut -d' ' -f1) $extras"
   if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
-    echo "run.sh: installing ne_jax and its dependencies into .venv (first run: a few minutes)" >&2
+    echo "run.sh: installing ne_jax and its dependencies into .venv, extras $extras (first run: a few minutes)" >&2
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e ".[test]"
+    .venv/bin/python -m pip install -q -e ".[$extras]"
     echo "$want" > "$stamp"
   fi
 }
