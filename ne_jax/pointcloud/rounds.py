@@ -46,6 +46,7 @@ from ne_jax.fields import require
 from ne_jax.geometry.capacity import LostCounts
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.points import PointState
+from ne_jax.pointcloud.holes import HoleSearch, hole_candidates
 from ne_jax.pointcloud.init import Views
 from ne_jax.pointcloud.neighbors import statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
@@ -73,6 +74,12 @@ class RoundConfig:
     """One candidate per cubic cell of this many point spacings."""
     grow_max_fraction: float = 0.02
     """At most this share of the alive count is added per round."""
+    fill_holes: bool = False
+    """Also look for candidates where badly rendered rays meet no voxel, by photo-consistency along
+    them (:mod:`ne_jax.pointcloud.holes`): a part of the surface the cloud misses entirely."""
+    hole_share: float = 0.25
+    """With ``fill_holes``: the share of the scanned rays, highest error first among those the scan
+    found no candidate on, searched for holes."""
     prune_threshold: float = 0.1
     """Points with confidence below this are pruned (docs/design.md: 0.1)."""
     prune_max_fraction: float | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
@@ -111,6 +118,7 @@ class RoundConfig:
         need(self.grow_min_sigma >= 0, "grow_min_sigma", ">= 0")
         need(self.grow_cell > 0, "grow_cell", "> 0")
         need(0 <= self.grow_max_fraction <= 1, "grow_max_fraction", "a value in [0, 1]")
+        need(0 < self.hole_share <= 1, "hole_share", "a value in (0, 1]")
         need(0 <= self.prune_threshold < 1, "prune_threshold", "a value in [0, 1)")
         need(self.prune_max_fraction is None or 0 <= self.prune_max_fraction <= 1, "prune_max_fraction",
              "None or a value in [0, 1]")
@@ -238,13 +246,15 @@ def resize_capacity(points: PointState, capacity: int) -> PointState:
 
 
 def grow_points(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene: PointScene,
-                rays: Rays, background, max_grow: int = 4) -> tuple[PointState, dict]:
+                rays: Rays, background, max_grow: int = 4, views: Views | None = None) -> tuple[PointState, dict]:
     """Scan ``rays`` (``[R]``, targets set) in chunks, select and add the new points. A chunk that
     lost segments to the scene's capacities is scanned again with them grown
     (:meth:`~ne_jax.render.renderer.PointScene.grown`, at most ``max_grow`` times).
     Returns ``(points, report)``; the report counts rays scanned, candidates found and points added,
     whether the point capacity was re-allocated, what was still lost (``lost``, as
-    :class:`~ne_jax.geometry.capacity.LostCounts`) and the capacities the scan ended with."""
+    :class:`~ne_jax.geometry.capacity.LostCounts`) and the capacities the scan ended with. With
+    ``cfg.fill_holes`` (and ``views``) the rays it found nothing on are searched for holes too
+    (:func:`hole_growth`); both kinds of candidate share the cells and the cap."""
     render_cfg = render_cfg.replace(quadrature=at_test_time(render_cfg.quadrature))  # no jitter in the scan
     n = rays.num_rays
     chunk = min(cfg.grow_chunk, n)
@@ -264,18 +274,52 @@ def grow_points(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene:
         parts.append(jax.device_get({k: v for k, v in out.items() if k not in ("lost", "render_lost")}))
     scan = {k: np.concatenate([p[k] for p in parts])[:n] for k in parts[0]}
     found = np.flatnonzero(scan["found"])
+    holes = {}
+    if cfg.fill_holes and views is not None:
+        scan, holes = hole_growth(cfg, scene, rays, scan, views)
     alive = int(np.asarray(scene.points.alive).sum())
     max_new = int(np.floor(cfg.grow_max_fraction * alive))
     spacing = float(scene.tree.spacing)
-    pick = found[select_growth(scan["xyz"][found], scan["error"][found], cfg.grow_cell * spacing, max_new)]
+    candidates = np.flatnonzero(scan["found"])
+    pick = candidates[select_growth(scan["xyz"][candidates], scan["error"][candidates], cfg.grow_cell * spacing,
+                                    max_new)]
     capacity = scene.points.capacity
     points, slots = add_points(scene.points, scan["xyz"][pick], scan["feature"][pick],
                                headroom=cfg.capacity_headroom, ist=scan["ist"][pick] if "ist" in scan else None)
+    if holes:
+        holes["added"] = int(np.isin(pick, holes.pop("rows")).sum())
     report = {"rays": int(n), "candidates": int(found.size), "added": int(pick.size),
-              "capacity_before": capacity, "capacity_after": points.capacity,
+              **({"holes": holes} if holes else {}), "capacity_before": capacity, "capacity_after": points.capacity,
               "reallocated": points.capacity != capacity, "lost": lost.as_dict(),
               "capacities": dataclasses.asdict(scene.capacities)}
     return points, report
+
+
+def hole_growth(cfg: RoundConfig, scene: PointScene, rays: Rays, scan: dict, views: Views) -> tuple[dict, dict]:
+    """The scan with hole candidates (:func:`~ne_jax.pointcloud.holes.hole_candidates`) on the
+    ``cfg.hole_share`` highest-error rays it found nothing on; a hole candidate takes the feature (and
+    IST) of its nearest alive point. Returns ``(scan, report)``: rays searched, candidates found, and
+    ``rows`` (their ray indices, for the caller's count of what was added)."""
+    error = scan["error"]
+    empty = np.flatnonzero(~scan["found"])
+    count = int(np.ceil(cfg.hole_share * len(error)))
+    rows = empty[np.argsort(-error[empty], kind="stable")[:count]]
+    points = scene.points
+    alive = np.flatnonzero(np.asarray(points.alive))
+    cloud = np.asarray(points.xyz, np.float64)[alive]
+    host = jax.device_get({"o": rays.origin[rows], "d": rays.direction[rows], "t": rays.target[rows, :3]})
+    xyz, _, found = hole_candidates(HoleSearch(), views, host["o"], host["d"], host["t"], cloud,
+                                    cfg.grow_min_distance * float(scene.tree.spacing))
+    rows = rows[found]
+    scan = {k: np.array(v, copy=True) for k, v in scan.items()}
+    if rows.size:
+        _, nearest = cKDTree(cloud).query(xyz[found])
+        scan["xyz"][rows] = xyz[found]
+        scan["feature"][rows] = np.asarray(points.feature)[alive[nearest]]
+        if "ist" in scan:
+            scan["ist"][rows] = np.asarray(points.ist)[alive[nearest]]
+        scan["found"][rows] = True
+    return scan, {"rays": int(count), "candidates": int(rows.size), "rows": rows}
 
 
 # ---------------------------------------------------------------- prune and denoise
@@ -355,7 +399,7 @@ def point_round(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene:
     points = scene.points
     report = {"alive_before": int(np.asarray(points.alive).sum())}
     if cfg.grow:
-        points, r = grow_points(cfg, render_cfg, params, scene, rays, background)
+        points, r = grow_points(cfg, render_cfg, params, scene, rays, background, views=views)
         report.update(grown=r)
     if cfg.prune:
         points, r = prune_points(cfg, points)
@@ -369,5 +413,5 @@ def point_round(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene:
     return points, report
 
 
-__all__ = ["RoundConfig", "add_points", "denoise_points", "grow_points", "mean_neighbor_distance",
+__all__ = ["RoundConfig", "add_points", "denoise_points", "grow_points", "hole_growth", "mean_neighbor_distance",
            "point_round", "prune_points", "refresh_normals", "resize_capacity", "scan_growth", "select_growth"]
