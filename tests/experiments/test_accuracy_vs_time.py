@@ -1,139 +1,34 @@
-"""Smoke test of ``python -m experiments.accuracy_vs_time --study numerics`` at reduced sizes: the output
-files and their schema, and monotone sanity of the numbers (no claim about timings beyond > 0)."""
+"""The accuracy-vs-time study (``python -m experiments.accuracy_vs_time``): its candidates, the preset
+rule, the summary over scenes and a quick run end to end; and ``experiments/compare_runs.py``."""
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import itertools
 import json
 import math
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 
-def _load(name: str = "accuracy_vs_time"):
-    """The module ``experiments.<name>``."""
-    return importlib.import_module(f"experiments.{name}")
+def _training():
+    """The module ``experiments.accuracy_vs_time``."""
+    import importlib
 
-
-@pytest.fixture(scope="module")
-def quick_run(tmp_path_factory):
-    avt = _load()
-    out = tmp_path_factory.mktemp("accuracy_vs_time")
-    assert avt.main(["--study", "numerics", "--quick", "--out-dir", str(out)]) == 0
-    return avt, out, json.loads((out / "accuracy_vs_time.json").read_text())
-
-
-def _finite_nonneg(xs):
-    return all(isinstance(x, float) and math.isfinite(x) and x >= 0 for x in xs)
-
-
-def test_files_and_schema(quick_run):
-    avt, out, res = quick_run
-    for name in ("accuracy_vs_time.json", "accuracy_vs_time_numerics.md", "accuracy_vs_time_quadrature.png",
-                 "accuracy_vs_time_knn.png", "accuracy_vs_time_precision.png"):
-        assert (out / name).stat().st_size > 0, name
-    assert res["study"] == "numerics" and res["command"].endswith("--quick")
-    assert {"quadrature", "knn", "precision", "wall_s", "machine", "discussion", "plots"} <= set(res)
-    q = res["quadrature"]
-    n_s = len(q["s_values"])
-    assert set(q["rules"]) == {"hermite", "hermite_o4", "spline", "spline_natural", "trapezoid", "stochastic"}
-    for rule, row in q["rules"].items():
-        assert set(row["error"]) == set(avt.FIELDS)
-        for kind, err in row["error"].items():
-            central = avt.quadrature_error(q, rule, kind)
-            assert len(central) == n_s and _finite_nonneg(central)
-            assert _finite_nonneg(err["max_abs"]) and all(m >= c - 1e-15 for m, c in zip(err["max_abs"], central)
-                                                         if rule != "stochastic")
-        assert len(row["ms_per_1e5_segments"]) == n_s and all(t > 0 for t in row["ms_per_1e5_segments"])
-    kn = res["knn"]
-    assert kn["rows"] and kn["exact"]
-    for r in kn["rows"]:
-        assert 0.0 <= r["recall"] <= 1.0 and r["ms_per_1e6_samples"] > 0
-        assert _finite_nonneg([r["diff_random_mean"], r["diff_random_max"], r["diff_smooth_mean"]])
-    pr = res["precision"]
-    for key in ("rgb_max_abs_diff", "rgb_mean_abs_diff", "opacity_max_abs_diff", "time_ratio_f64_over_f32"):
-        assert math.isfinite(pr[key]) and pr[key] >= 0
-    assert pr["lost_segments"] == [0, 0]
-    md = (out / "accuracy_vs_time_numerics.md").read_text()
-    assert "#### Quadrature" in md and "#### KNN" in md and "float64" in md and res["command"] in md
-
-
-def test_quadrature_converges(quick_run):
-    avt, _, res = quick_run
-    q = res["quadrature"]
-    s = q["s_values"]
-    i4, i22 = s.index(4), s.index(22)
-    for rule in ("hermite", "hermite_o4", "spline", "spline_natural", "trapezoid"):
-        smooth = avt.quadrature_error(q, rule, "smooth")
-        assert smooth[i22] < 0.1 * smooth[i4], rule  # more samples: much smaller error on a smooth field
-        assert all(b <= a for a, b in itertools.pairwise(smooth)), (rule, smooth)  # never grows with s
-        step = avt.quadrature_error(q, rule, "step")
-        assert step[i22] < step[i4], rule
-    order = {r: q["rules"][r]["order"]["smooth"] for r in q["rules"]}
-    # Fitted orders (s >= 8 only: few points at quick sizes, hence the loose bounds).
-    assert 1.7 < order["trapezoid"] < 2.3
-    assert 2.6 < order["hermite"] < 3.4
-    assert order["spline"] > 3.5 and order["hermite_o4"] > 3.3
-    assert 0.8 < order["stochastic"] < 2.2
-    stoch = avt.quadrature_error(q, "stochastic", "smooth")
-    assert stoch[i22] < stoch[i4]
-
-
-def test_knn_sanity(quick_run):
-    _, _, res = quick_run
-    kn = res["knn"]
-    for k in {r["k"] for r in kn["rows"]}:
-        rows = sorted((r for r in kn["rows"] if r["k"] == k), key=lambda r: r["candidates"])
-        recall = [r["recall"] for r in rows]
-        # a larger candidate set is a superset (nearest-first), so recall cannot drop
-        assert all(b >= a - 1e-9 for a, b in itertools.pairwise(recall)), recall
-        assert recall[-1] > 0.9
-    for e in kn["exact"]:
-        assert e["recall_vs_scipy"] > 0.999  # brute force agrees with scipy's exact KNN
-
-
-def test_precision_sanity(quick_run):
-    _, _, res = quick_run
-    pr = res["precision"]
-    assert pr["rgb_max_abs_diff"] < 1e-3  # float32 rendering is far below an 8-bit step
-    assert pr["rgb_mean_abs_diff"] <= pr["rgb_max_abs_diff"]
-
-
-def test_fit_order_recovers_a_power_law():
-    avt = _load()
-    s = np.array([4, 8, 16, 32, 64])
-    assert avt.fit_order(s, 3.0 * (1.0 / (s - 1)) ** 3, "hermite") == pytest.approx(3.0)
-    assert avt.fit_order(s, 0.5 * (1.0 / s) ** 1.5, "stochastic") == pytest.approx(1.5)
-
-
-# ------------------------------------------------------------------------- --study image (part 2)
+    return importlib.import_module("experiments.accuracy_vs_time")
 
 
 @pytest.fixture(scope="module")
 def mini(tmp_path_factory):
-    """``(root, scene_dir, run)``: a 24-px generated glossy scene (as tests/edit/test_model.py) with the
-    ``bend`` edit the image study scores, and a RunConfig of a few steps."""
+    """``(root, scene_dir, run)``: a 24-px generated glossy scene (as tests/edit/test_model.py), no edits,
+    and a RunConfig of a few steps."""
     from ne_jax.benchmark.generate import generate_scene
 
     from tests.mini_presets import mini_benchmark, short_run
 
     root = tmp_path_factory.mktemp("avt_mini")
-    generate_scene("glossy", mini_benchmark(train_views=4), root / "bench", seed=0, edits=("bend",))
+    generate_scene("glossy", mini_benchmark(train_views=4), root / "bench", seed=0, edits=())
     return root, root / "bench" / "glossy", short_run()
-
-
-@pytest.fixture(scope="module")
-def short_model(mini):
-    """The run directory of a model trained for a few steps on the mini scene."""
-    from ne_jax.train.loop import train
-
-    root, scene_dir, run = mini
-    train(run, scene_dir, root / "short_model", progress=False, log=lambda s: None)
-    return root / "short_model"
 
 
 @pytest.fixture(scope="module")
@@ -160,151 +55,14 @@ def initial_model(mini, tmp_path_factory):
     return save_trained(model, tmp_path_factory.mktemp("initial_model") / "run", metrics={"epochs": epochs})
 
 
-@pytest.fixture(scope="module")
-def image_run(mini, short_model):
-    """The image study in ``--quick`` mode on the short model and its zero-shot "bend" edit."""
-    avt = _load()
-    root, _, _ = mini
-    out = root / "results"
-    assert avt.main(["--study", "image", "--run", str(short_model), "--out-dir", str(out), "--test-views", "2",
-                     "--timing-passes", "2", "--quick"]) == 0
-    return out, json.loads((out / "accuracy_vs_time_image_test.json").read_text()), short_model
-
-
-def test_image_study_needs_a_run(capsys):
-    avt = _load()
-    assert avt.main(["--study", "image"]) == 2
-    assert "needs a trained model: pass --run RUN_DIR" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="test_views: expected at least 1 test view, found 0"):
-        avt.main(["--study", "image", "--run", "no_such_run", "--test-views", "0"])
-
-
-@pytest.mark.slow  # a study run end to end: -m slow
-def test_image_study_files_and_schema(image_run):
-    out, res, run_dir = image_run
-    for name in ("accuracy_vs_time_image_test.json", "accuracy_vs_time_image_test.md",
-                 "accuracy_vs_time_image_test.png"):
-        assert (out / name).stat().st_size > 0, name
-    assert res["study"] == "image" and res["command"].endswith("--test-views 2 --timing-passes 2 --quick")
-    assert res["edit"] == "bend" and res["preset"] == "test"
-    assert res["sizes"]["test_views"] == 2 and res["sizes"]["timing_passes"] == 2
-    assert {"targets", "sizes", "machine", "discussion", "own_position", "wall_s", "preset"} <= set(res)
-    assert [t["target"] for t in res["targets"]] == ["original", "edit"]
-    views = min(2, len(json.loads((Path(res["scene_dir"]) / "transforms_test.json").read_text())["frames"]))
-    assert all(t["split"].startswith(f"test ({views} views") for t in res["targets"])
-    from ne_jax.train.run import load_run_config
-
-    image = _load("accuracy_vs_time_image")
-    own = load_run_config(run_dir).render
-    for t in res["targets"]:
-        rows = t["rows"]
-        cfg = own.with_effects(ist=True) if t["target"] == "edit" else own
-        expected = [s.label for s in image.settings_for(cfg, image.ImageSizes.quick())]
-        assert [r["label"] for r in rows] == expected  # one row per setting, in order
-        assert rows[0]["knob"] == "own" and {"samples", "points", "chunk"} <= {r["knob"] for r in rows}
-        for r in rows:
-            assert {"psnr", "ssim", "ms_per_image", "compile_s", "d_psnr", "time_ratio", "on_front",
-                    "lost_segments", "alive_points", "overflow_rays"} <= set(r)
-            assert 0 <= r["overflow_rays"] <= 40_000
-            assert math.isfinite(r["psnr"]) and 0.0 < r["ssim"] <= 1.0
-            assert math.isfinite(r["ms_per_image"]) and r["ms_per_image"] > 0 and r["compile_s"] >= 0
-        # the front: non-empty, made of rows no other row beats
-        assert t["front"] and all(rows[i]["on_front"] for i in t["front"])
-        for i in t["front"]:
-            assert not any(b["ms_per_image"] < rows[i]["ms_per_image"] and b["psnr"] > rows[i]["psnr"] for b in rows)
-    md = (out / "accuracy_vs_time_image_test.md").read_text()
-    assert "Pareto front" in md and "the own config (`test`)" in md and res["command"] in md
-
-
-@pytest.mark.slow  # a study run end to end: -m slow
-def test_image_study_summary_only_rewrites_the_presets_files(image_run, capsys):
-    out, res, _ = image_run
-    md = out / "accuracy_vs_time_image_test.md"
-    md.write_text("stale")
-    avt = _load()
-    assert avt.main(["--study", "image", "--summary-only", "--preset", "test", "--out-dir", str(out)]) == 0
-    assert "Pareto front" in md.read_text()
-    with pytest.raises(FileNotFoundError, match="accuracy_vs_time_image_paper.json: no image study results"):
-        avt.main(["--study", "image", "--summary-only", "--preset", "paper", "--out-dir", str(out)])
-
-
-def test_evenly_spaced_views():
-    _load()
-    image = _load("accuracy_vs_time_image")
-    assert image.evenly_spaced(20, 5) == [0, 5, 10, 14, 19]
-    assert image.evenly_spaced(3, None) == image.evenly_spaced(3, 7) == [0, 1, 2]
-    assert image.evenly_spaced(9, 1) == [0]
-    with pytest.raises(ValueError, match="expected at least 1, found 0"):
-        image.evenly_spaced(9, 0)
-
-
-def test_image_frontier_settings_change_only_the_frontier():
-    image = _load("accuracy_vs_time_image")
-    from tests.mini_presets import tiny_caps, tiny_render
-
-    own, caps = tiny_render(), tiny_caps()
-    settings = image.settings_for(own, image.ImageSizes.full(), caps)
-    rows = [s for s in settings if s.knob == "frontier"]
-    assert [s.value for s in rows] == [4, 8]  # a quarter and a half of the tiny capacities' 16
-    for s in rows:
-        assert s.capacities == caps.replace(frontier=s.value)
-        assert s.cfg == own
-    # only the frontier and the presets change the capacities
-    assert {s.knob for s in settings if s.capacities is not None} <= {"frontier", "preset"}
-    # a two-pass own walk keeps its first pass where it is narrower than the scaled frontier
-    two = caps.replace(frontier=64, first_pass_frontier=16)
-    rows = [s for s in image.settings_for(own, image.ImageSizes.full(), two) if s.knob == "frontier"]
-    assert [(s.capacities.frontier, s.capacities.first_pass_frontier) for s in rows] == [(16, None), (32, 16)]
-
-
-@pytest.mark.slow  # a study run end to end: -m slow
-def test_bench_traversal_two_pass_is_the_reference_bit_for_bit(image_run, tmp_path):
-    """``python -m experiments.bench_traversal --quick`` on the smoke-test model: the two-pass walk gives the
-    reference's segments, pixels and (after 2 training steps) parameters exactly."""
-    bench = _load("bench_traversal")
-    _, _, run_dir = image_run
-    assert bench.main(["--run", str(run_dir), "--quick", "--out-dir", str(tmp_path)]) == 0
-    res = json.loads((tmp_path / "bench_traversal.json").read_text())
-    ref, two = res["rows"]
-    assert ref["walk_ratio"] == 1.0 and two["changes"]["first_pass_frontier"] < 16
-    assert two["segments_equal_reference"] and two["max_abs_rgb_diff"] == 0.0
-    assert two["max_abs_param_diff"] == 0.0 and two["train_segments_lost"] == ref["train_segments_lost"]
-    assert "two passes" in (tmp_path / "bench_traversal.md").read_text()
-    with pytest.raises(SystemExit, match="expected a trained run directory"):
-        bench.main(["--run", str(tmp_path / "missing")])
-
-
-@pytest.mark.slow  # a study run end to end: -m slow
-def test_bench_presets_quick(image_run, tmp_path):
-    """``python -m experiments.bench_presets --quick`` on the smoke-test model: one row per preset measured, the
-    ratios against ``default``, the projection from the measured step, and clear refusals."""
-    bench = _load("bench_presets")
-    _, _, run_dir = image_run
-    assert bench.main(["--run", str(run_dir), "--quick", "--out-dir", str(tmp_path)]) == 0
-    res = json.loads((tmp_path / "bench_presets_cpu.json").read_text())
-    rows = {r["label"]: r for r in res["rows"]}
-    assert list(rows) == ["tiny", "default"]
-    assert rows["default"]["step_ratio"] == 1.0 and rows["default"]["frontier"] == [16, 64]
-    assert (rows["tiny"]["batch_rays"], rows["default"]["batch_rays"]) == (1024, 2048)
-    for r in rows.values():
-        assert r["ms_per_step"] > 0 and r["ms_per_image"] > 0 and math.isfinite(r["psnr_view0"])
-        assert r["projected_train_min"] == pytest.approx(r["total_steps"] * r["ms_per_step"] / 6e4, abs=0.06)
-        assert r["train_segments_lost"] == r["lost_to_capacity"] + r["lost_to_budget"] >= 0
-        assert 0 <= r["first_batch"]["rays_at_max_segments"] <= r["batch_rays"]
-    assert "| tiny |" in (tmp_path / "bench_presets_cpu.md").read_text()
-    with pytest.raises(SystemExit, match="expected a trained run directory"):
-        bench.main(["--run", str(tmp_path / "missing")])
-    with pytest.raises(SystemExit, match="--steps: expected at least 1, found 0"):
-        bench.main(["--run", str(run_dir), "--steps", "0"])
-
-
 def test_compare_runs_same_and_different(initial_model, tmp_path, capsys):
     """``python -m experiments.compare_runs``: a run against a copy of itself is equal bit for bit (exit 0); a
     copy whose checkpoint holds other parameters is not (exit 1). (What the runs trained does not matter:
     the run directory holds a model as training starts it.)"""
+    import importlib
     import shutil
 
-    compare = _load("compare_runs")
+    compare = importlib.import_module("experiments.compare_runs")
     run_dir = initial_model
     assert compare.main([str(run_dir), str(run_dir)]) == 0
     assert "every array equal bit for bit: True" in capsys.readouterr().out
@@ -323,41 +81,21 @@ def test_compare_runs_same_and_different(initial_model, tmp_path, capsys):
     assert "every array equal bit for bit: False" in out and "B / A = 1.000" in out
 
 
-@pytest.mark.slow  # a study run end to end: -m slow
-def test_image_study_sanity(image_run):
-    _, res, _ = image_run
-    for t in res["targets"]:
-        rows = {r["label"]: r for r in t["rows"]}
-        full, quarter = rows["points 100%"], rows["points 25%"]
-        assert quarter["alive_points"] == pytest.approx(0.25 * full["alive_points"], abs=1)
-        # deleting three points in four cannot make the images better (beyond noise)
-        assert quarter["psnr"] <= full["psnr"] + 0.5, (t["target"], quarter["psnr"], full["psnr"])
-        # the same render twice scores the same; a chunk size changes no pixel (its accuracy is the own config's)
-        assert full.get("same_as") == "own config" and full["psnr"] == t["rows"][0]["psnr"]
-
-
-# ---------------------------------------------------------------------- --study training (part 3)
-
-
-def _training():
-    _load()
-    return _load("accuracy_vs_time_training")
-
-
 def test_training_study_needs_a_scene(capsys):
-    avt = _load()
-    assert avt.main(["--study", "training"]) == 2
+    avt = _training()
+    assert avt.main([]) == 2
     assert "needs a scene to train on: pass --scene DIR" in capsys.readouterr().err
-    assert avt.main(["--study", "training", "--preset", "huge", "--scene", "x"]) == 2
-    assert "--preset: expected one of tiny, default, paper, found 'huge'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        avt.main(["--scene", "x", "--preset", "huge"])
+    assert "invalid choice: 'huge'" in capsys.readouterr().err
 
 
 def test_training_study_cli_passes_finished_only(mini, tmp_path):
     """``--finished-only`` reaches the study: with no finished runs it refuses before training anything."""
-    avt = _load()
+    avt = _training()
     _, scene_dir, _ = mini
     with pytest.raises(FileNotFoundError, match="finished_only: the preset's own run .* has not finished"):
-        avt.main(["--study", "training", "--scene", str(scene_dir), "--quick", "--runs", str(tmp_path / "runs"),
+        avt.main(["--scene", str(scene_dir), "--quick", "--runs", str(tmp_path / "runs"),
                   "--out-dir", str(tmp_path / "out"), "--finished-only"])
     assert not (tmp_path / "runs").exists() and not (tmp_path / "out").exists()
 

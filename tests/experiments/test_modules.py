@@ -41,7 +41,7 @@ def test_every_entry_point_sets_its_process_up():
             assert "ne_jax.setup(" in block and block.index("ne_jax.setup(") < block.index("main()"), name
 
 
-@pytest.mark.parametrize("name", ["compare_runs", "bench_presets"])
+@pytest.mark.parametrize("name", ["compare_runs", "accuracy_vs_time"])
 def test_help_runs_as_module(name):
     out = subprocess.run([sys.executable, "-m", f"experiments.{name}", "--help"], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)
