@@ -113,6 +113,41 @@ def timed_steps(step, state, scene, batches) -> tuple:
     return state, per_step, first, lost_counts(jax.device_get(counts))
 
 
+def time_steps(run, model, pool, scene, steps: int) -> dict:
+    """``steps`` training steps of ``run``'s config from ``model``'s parameters and cloud (``model.state``,
+    ``model.scene``) on batches drawn from ``pool``, the packing budget fitted as training fits it: time
+    per step and per ray, the compile, the segments lost and the first batch's segments per ray, and the
+    run's projected training time (steps x time per step, no point-cloud rounds)."""
+    import jax
+    import numpy as np
+
+    from ne_jax.geometry.intersect import intersect
+    from ne_jax.train.sampler import sample_batch
+    from ne_jax.train.state import init_train_state
+    from ne_jax.train.step import make_train_step
+
+    key = jax.random.PRNGKey(0)
+    points = model.state.point_state(model.scene.points)
+    state = init_train_state(run.train, run.render, points, key).replace(params=model.state.params)
+    train_render = run.train_render
+    batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i), train_render.pixel_samples)
+               for i in range(steps + 1)]
+    scene = scene.fitted(train_render, batches[0].rays)  # the packing budget, as training fits it
+    step = make_train_step(run.train, train_render)
+    _, per_step, first_s, lost = timed_steps(step, state, scene, batches)
+    segs = intersect(scene.tree, batches[0].rays, run.render.kdtree, scene.capacities)
+    found = np.asarray(segs.valid).sum(1)
+    rays = run.sampler.batch_size
+    cap = scene.capacities
+    return {"batch_rays": rays, "segments_per_ray": cap.segments_per_ray, "ms_per_step": round(1e3 * per_step, 2),
+            "us_per_ray": round(1e6 * per_step / rays, 3), "step_compile_s": round(first_s - per_step, 2),
+            "train_segments_lost": lost.total, "lost_to_capacity": lost.frontier + lost.slots,
+            "lost_to_budget": lost.packing,
+            "first_batch": {"mean_segments": round(float(found.mean()), 2),
+                            "rays_at_max_segments": int((found == cap.max_segments).sum()),
+                            "rays_overflowing": int((np.asarray(segs.lost().count) > 0).sum())},
+            "total_steps": run.total_steps, "projected_train_min": round(run.total_steps * per_step / 60, 1)}
+
 def device_tag() -> str:
     """``cpu``, or the accelerator JAX runs on as a file-name part (``nvidia_h100_80gb_hbm3``): benchmarks
     name their results after it, so a GPU's timings never overwrite the CPU's."""
