@@ -16,8 +16,7 @@ extended by it), which ``ne-jax`` and ``python -m experiments.<name>`` do first 
 ``run.sh`` exports the tunable. For your own scripts and notebooks, start Python with
 ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` (or call ``ne_jax.setup(huge_pages=True)`` first thing
 in a script). ``NE_JAX_HOST_MEMORY=system`` keeps glibc's defaults.
-``python -m experiments.bench_host_memory`` measures both in one run (docs/studies/profile.md,
-"Page faults").
+What they save: docs/decisions.md, huge pages.
 
 Keeping the scratch memory mapped instead (``mallopt``: one arena, no separate mappings) removes
 the faults too, but funnels every thread through one arena lock: compiles slow down, and a ``tiny``

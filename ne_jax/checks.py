@@ -88,7 +88,7 @@ def _check_finite(message: str, ok, i, value) -> None:
     ``ShapeDtypeStruct.like`` reads a tracer's ``sharding``, and the tracer's ``AttributeError``
     prints the equations of its program that read a constant); in the caller's trace those are whole
     nested programs, most of the time a checked training step took to trace
-    (``python -m experiments.bench_checks``)."""
+    (docs/decisions.md, runtime checks)."""
     checkify.check(ok, message, i=i, value=value)
 
 

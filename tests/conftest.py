@@ -28,8 +28,8 @@ that then runs for milliseconds. So the tests compile with ``--xla_backend_optim
 (XLA's default is 3) and with XLA:CPU's loop emitters instead of its MLIR fusion emitters
 (``--xla_cpu_use_fusion_emitters=false``), each added to ``XLA_FLAGS`` unless it already names that
 flag: ``XLA_FLAGS="--xla_backend_optimization_level=3 --xla_cpu_use_fusion_emitters=true" bash run.sh
-test`` runs the suite as users' programs are compiled. ``experiments/bench_xla_emitters.py`` prices
-both flags on a ``default`` render and training step. Results agree to the tests' tolerances either
+test`` runs the suite as users' programs are compiled (what both flags cost a ``default`` render
+and training step: docs/decisions.md). Results agree to the tests' tolerances either
 way; comparisons of two programs bit for bit compile both with the same flags.
 """
 

@@ -188,7 +188,7 @@ def grow(cap: Capacities, lost: Lost | LostCounts, buffers: tuple[str, ...] = BU
 
 PACKING_STEP = 2.0
 """:func:`fit_packing` sizes the budget in multiples of this many segments per ray (a training
-step's time follows its budget: experiments/bench_packing.py)."""
+step's time follows its budget: docs/decisions.md, the packing budget)."""
 
 
 def fit_packing(cap: Capacities, mean_segments: float, headroom: float = 1.25) -> Capacities:

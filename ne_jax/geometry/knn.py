@@ -165,7 +165,7 @@ def _per_candidate_weights(state: PointState, tree: KDTree, points, node, sample
     are those whose :func:`~ne_jax.numerics.stable_ranks` by distance is below ``k`` (the set
     ``lax.top_k`` chooses), with dense weights and no gather or scatter of chosen slots (16 of 32: the
     selection 6-9x, the integration 1.9-2.2x faster than with ``top_k``); wider sets use ``lax.top_k``
-    (32 of 96: ranking is 7x slower). ``experiments/bench_knn.py``. ``gate``: ``[B, 1]``, the
+    (32 of 96: ranking is 7x slower; docs/decisions.md). ``gate``: ``[B, 1]``, the
     quadrature of the density gate with falloff ``scale`` (``None`` without one)."""
     if tree.candidates.shape[-1] > RANK_MAX_CANDIDATES:
         return _per_candidate_weights_top_k(state, tree, points, node, sample_weight, k, eps, scale)
