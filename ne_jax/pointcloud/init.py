@@ -32,7 +32,7 @@ Growing and pruning during training are what refine the cloud further.
 
 Snapping puts points *on the hull* (analytic sphere, 40 views: mean error 0.04 voxel sizes instead
 of 0.48). Where the hull is loose (concavities), unsnapped points half a voxel inside it happen to
-lie slightly closer to the true surface: on the tiny benchmark (``experiments/initial_cloud.py``)
+lie slightly closer to the true surface: on the tiny benchmark (docs/decisions.md, the initial cloud)
 snapping lowered the symmetric Chamfer distance on stool and glossy and raised it on cup and blocks,
 mean over the four scenes 0.0287 snapped vs 0.0281 unsnapped (world units, 128^3 voxels of 0.017).
 

@@ -29,8 +29,8 @@ Orientation (``cfg.orient``) — PCA gives an axis, not a sign:
 ``"none"``
     Open3D's arbitrary signs.
 
-Measured on the four benchmark scenes at the ``tiny`` preset (``experiments/initial_cloud.py``,
-``experiments/results/initial_cloud.json``, block ``orientation``): fraction of normals with
+Measured on the four benchmark scenes at the ``tiny`` preset (docs/decisions.md, the initial cloud:
+``initial_cloud.json``, block ``orientation``): fraction of normals with
 ``cos > 0`` to the nearest ground-truth normal, mean over the scenes, on carved clouds and on the
 ground-truth samples' positions: ``visibility`` 0.95 / 0.87, ``tangent_plane`` 0.94 / 0.76,
 ``visibility_votes`` 0.87 / 0.80, ``nearest_camera`` 0.76 / 0.65, ``none`` 0.47 / 0.50. ``visibility``
