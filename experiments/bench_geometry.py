@@ -13,22 +13,12 @@ side by side in one process per size (so peak memory is per size):
 * peak resident memory of the process (``ru_maxrss``; "ours" = before the scipy KNN baseline
   runs, "all" = at the end) and the tree's array bytes.
 
-``--build`` measures the tree build alone, the ratio the issue asks about: ``build_tree`` against a
-bare ``cKDTree(points)`` and against the previous build (``tests/geometry/reference.py``'s
-``build_tree_reference``, a verbatim copy), interleaved in one process per cloud, best of
-``--repeat``: 1e6 surface points and 1e6 uniform points at the default depth, and the paper's fixed
-21 levels with 112k surface points. Each row also times scipy's own k-NN query of the candidate rows
-(the box centres of the non-empty candidate-level nodes, ``k = num_candidates``, on the build's
-threads): what the candidate sets would cost made of scipy queries.
-
 Usage::
 
     .venv/bin/python -m experiments.bench_geometry            # N = 1e4, 1e5, 1e6, 2e6
     .venv/bin/python -m experiments.bench_geometry --quick    # N = 1e4, 3e4 (smoke test)
-    .venv/bin/python -m experiments.bench_geometry --build    # the build alone (bench_geometry_build.json)
 
-Prints a Markdown table and writes ``experiments/results/bench_geometry.json``
-(``bench_geometry_build.json`` with ``--build``).
+Prints a Markdown table and writes ``experiments/results/bench_geometry.json``.
 """
 
 from __future__ import annotations
@@ -234,138 +224,6 @@ def run_size(n: int, quick: bool) -> dict:
     return out
 
 
-def jit_vs_host(p: int = 2**20) -> dict:
-    """One level of a median split as an XLA sort under jit vs numpy's whole split pass."""
-    import jax
-    import jax.numpy as jnp
-
-    from ne_jax.geometry.kdtree import _split_levels
-
-    x = surface_cloud(p, seed=3).astype(np.float64)
-    t_np = timeit(lambda: _split_levels(x, int(math.log2(p))), 1)
-    keys = jnp.asarray(x[:, 0].astype(np.float32)).reshape(64, -1)
-    srt = jax.jit(lambda k: jnp.argsort(k, axis=1))
-    srt(keys).block_until_ready()
-    t_jit = timeit(lambda: srt(keys).block_until_ready(), 3)
-    return {"points": p, "numpy_all_levels_s": t_np, "jit_one_level_argsort_s": t_jit}
-
-
-BUILD_CASES = {
-    # name: (cloud, points, fixed depth or None)
-    "surface_1e6": ("surface", 10**6, None),
-    "uniform_1e6": ("uniform", 10**6, None),
-    "paper_depth21_surface_112k": ("surface", 112_000, 21),
-}
-
-
-def build_case(args) -> dict:
-    """One cloud: cKDTree(points), build_tree and the previous build, interleaved, best of ``repeat``."""
-    name, repeat = args
-    from scipy.spatial import cKDTree
-
-    from ne_jax.geometry import KDTreeConfig, build_tree
-    from ne_jax.geometry.kdtree import _THREADS
-
-    from tests.geometry.reference import build_tree_reference
-
-    kind, n, depth = BUILD_CASES[name]
-    xyz = surface_cloud(n) if kind == "surface" else np.random.default_rng(0).uniform(-1, 1, (n, 3)).astype(np.float32)
-    alive = np.ones(n, bool)
-    cfg = KDTreeConfig(depth=depth)
-    warm = np.ones(4096, bool)  # first-call costs (imports, JAX's first transfers) out of the timings
-    build_tree(xyz[:4096], warm, cfg.replace(depth=None))
-    build_tree_reference(xyz[:4096], warm, cfg.replace(depth=None))
-    best = {"ckdtree": math.inf, "build_tree": math.inf, "previous_build": math.inf}
-    phases = {}
-    load_before = os.getloadavg()
-    for _ in range(repeat):
-        for key, fn in (("ckdtree", lambda ph: cKDTree(xyz)),
-                        ("build_tree", lambda ph: build_tree(xyz, alive, cfg, timings=ph)),
-                        ("previous_build", lambda ph: build_tree_reference(xyz, alive, cfg, timings=ph))):
-            ph = {}
-            t = time.perf_counter()
-            fn(ph)
-            t = time.perf_counter() - t
-            if t < best[key]:
-                best[key], phases[key] = t, ph
-    load_after = os.getloadavg()
-    tree = build_tree(xyz, alive, cfg)
-    rows = np.asarray(tree.count)[tree.first_candidate_node : 2**tree.depth - 1]
-    # What the candidate sets cost scipy: one k-NN query per non-empty candidate-level node centre,
-    # on as many threads as the build uses (a lower bound for a build made of such queries).
-    lo, hi = (np.asarray(a, np.float64)[tree.first_candidate_node : 2**tree.depth - 1] for a in (tree.lo, tree.hi))
-    centres = 0.5 * (lo + hi)[rows > 0]
-    kd = cKDTree(xyz.astype(np.float64))
-    t = time.perf_counter()
-    kd.query(centres, k=cfg.num_candidates, workers=_THREADS)
-    scipy_rows_s = time.perf_counter() - t
-    # Candidate rows ordered differently from the previous build's: only where points are
-    # equidistant from the box centre (tests/geometry/test_kdtree.py checks that).
-    prev = np.asarray(build_tree_reference(xyz, alive, cfg).candidates)
-    differing = int((prev != np.asarray(tree.candidates)).any(axis=1).sum())
-    return {"case": name, "cloud": kind, "n": n, "depth": tree.depth, "repeat": repeat,
-            "load_average_before": load_before, "load_average_after": load_after,
-            "candidate_rows": int(rows.size), "nonempty_candidate_rows": int((rows > 0).sum()),
-            "candidate_rows_tie_order_differing_from_previous": differing,
-            **{f"{k}_s": v for k, v in best.items()},
-            "scipy_candidate_rows_s": scipy_rows_s, "scipy_candidate_rows_threads": _THREADS,
-            "ratio_scipy_candidate_rows_to_ckdtree": scipy_rows_s / best["ckdtree"],
-            "build_phases_s": phases.get("build_tree", {}), "previous_build_phases_s": phases.get("previous_build", {}),
-            "ratio_build_tree_to_ckdtree": best["build_tree"] / best["ckdtree"],
-            "ratio_previous_to_ckdtree": best["previous_build"] / best["ckdtree"],
-            "speedup_vs_previous": best["previous_build"] / best["build_tree"]}
-
-
-def build_table(rows) -> str:
-    lines = ["| case | N | depth | cKDTree s | build_tree s (splits / index / boxes / candidates) | previous s | "
-             "build / cKDTree | previous / cKDTree | previous / build | scipy k-NN of the candidate rows s "
-             "(/ cKDTree) |", "|" + "---|" * 10]
-    for r in rows:
-        ph = r["build_phases_s"]
-        lines.append(
-            f"| {r['case']} | {r['n']} | {r['depth']} | {r['ckdtree_s']:.3f} | {r['build_tree_s']:.2f} "
-            f"({ph['splits']:.2f} / {ph['index']:.2f} / {ph['boxes']:.2f} / {ph['candidates']:.2f}) | "
-            f"{r['previous_build_s']:.2f} | {r['ratio_build_tree_to_ckdtree']:.1f}x | "
-            f"{r['ratio_previous_to_ckdtree']:.1f}x | {r['speedup_vs_previous']:.2f}x | "
-            f"{r['scipy_candidate_rows_s']:.2f} ({r['ratio_scipy_candidate_rows_to_ckdtree']:.1f}x) |")
-    return "\n".join(lines)
-
-
-def build_main(args):
-    import jax
-
-    from ne_jax import provenance
-
-    ctx = mp.get_context("spawn")
-    rows = []
-    for name in args.cases or list(BUILD_CASES):
-        with ctx.Pool(1) as pool:
-            rows.append(pool.map(build_case, [(name, args.repeat)])[0])
-        print(f"{name}: done", file=sys.stderr, flush=True)
-    md = build_table(rows)
-    print(md)
-
-    meta = {
-        "command": "python -m experiments.bench_geometry --build"
-        + (f" --repeat {args.repeat}" if args.repeat != 3 else "")
-        + (" --cases " + " ".join(args.cases) if args.cases else ""),
-        "commit": provenance.commit(),
-        "kdtree_py_modified": bool(provenance.modified("ne_jax/geometry/kdtree.py")),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__,
-                    "load_average_at_end": os.getloadavg()},
-        "note": "Shared 2-core CPU with other jobs running: compare ratios within one row (same process, "
-                "interleaved, best of repeat), not absolute seconds across rows or runs. Each row records "
-                "os.getloadavg() before and after its timings.",
-        "rows": rows,
-        "table_markdown": md,
-    }
-    out = args.out or os.path.join(HERE, "results", "bench_geometry_build.json")
-    os.makedirs(os.path.dirname(out), exist_ok=True)
-    with open(out, "w") as fh:
-        json.dump(meta, fh, indent=2)
-    print(f"wrote {out}", file=sys.stderr)
-
-
 def _worker(args):
     n, quick = args
     return run_size(n, quick)
@@ -393,13 +251,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (1e4, 3e4) for a smoke test")
     ap.add_argument("--sizes", type=float, nargs="*", help="override the cloud sizes")
-    ap.add_argument("--build", action="store_true", help="the tree build alone vs cKDTree and the previous build")
-    ap.add_argument("--cases", nargs="*", choices=sorted(BUILD_CASES), help="with --build: a subset of the clouds")
-    ap.add_argument("--repeat", type=int, default=3, help="with --build: best of this many interleaved rounds")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    if args.build:
-        return build_main(args)
     args.out = args.out or os.path.join(HERE, "results", "bench_geometry.json")
     sizes = [int(s) for s in (args.sizes or ([1e4, 3e4] if args.quick else [1e4, 1e5, 1e6, 2e6]))]
     ctx = mp.get_context("spawn")
@@ -411,19 +264,14 @@ def main(argv=None):
         row["wall_s"] = time.perf_counter() - t
         rows.append(row)
         print(f"N={n}: done in {row['wall_s']:.0f} s", file=sys.stderr, flush=True)
-    with ctx.Pool(1) as pool:
-        jvh = pool.map(jit_vs_host, [2**16 if args.quick else 2**20])[0]
     md = table(rows)
     print(md)
-    print(f"\njit vs host (median split, {jvh['points']} points): numpy all levels {jvh['numpy_all_levels_s']:.2f} s, "
-          f"one level's XLA argsort under jit {jvh['jit_one_level_argsort_s']:.2f} s")
     import jax
 
     meta = {
         "command": "python -m experiments.bench_geometry" + (" --quick" if args.quick else ""),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__},
         "rows": rows,
-        "jit_vs_host": jvh,
         "table_markdown": md,
     }
     os.makedirs(os.path.dirname(args.out), exist_ok=True)

@@ -24,9 +24,9 @@ Old vs new: the whole render and the whole training step are also timed, in subp
 code at ``--reference-path`` (a worktree of the reference commit) and with this checkout,
 alternating, so the ratio is measured in one run on the same (shared) machine; each code starts as
 it starts itself (this checkout, like ``ne-jax``, with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``:
-:mod:`ne_jax._host_memory`; the reference with glibc's defaults). That path runs
-this file against the reference's ``ne_jax``, so :func:`build_inputs` and :func:`measure_whole` also
-work with a reference from before the buffer sizes moved into ``Capacities`` (carried by the scene).
+:mod:`ne_jax._host_memory`; the reference with glibc's defaults). That path runs this file against
+the reference's ``ne_jax``, so the reference must have this checkout's API for the calls
+:func:`whole_calls` makes (a commit since the buffer sizes moved into ``Capacities``).
 Writes ``experiments/results/profile_hot_path.{json,md}``.
 """
 
@@ -87,14 +87,6 @@ def flops_of(jitted, *args) -> float | None:
     return float(ca["flops"])
 
 
-def _new_api() -> bool:
-    """Whether the importable ``ne_jax`` carries the buffer sizes on the scene (``Capacities``), not in
-    the render and tree configs (a reference checkout may predate it)."""
-    import importlib.util
-
-    return importlib.util.find_spec("ne_jax.geometry.capacity") is not None
-
-
 def build_inputs(quick: bool, run=None):
     """The ``default`` scene, a render batch and a training batch (see the module docstring);
     ``run``: a :class:`~ne_jax.train.run.RunConfig` in place of the ``default`` preset."""
@@ -119,16 +111,14 @@ def build_inputs(quick: bool, run=None):
                                 normal=smp["normal"].astype(np.float32))
     feat = jax.random.normal(jax.random.key(0), pts.feature.shape) * 0.5
     pts = pts.replace(feature=feat, conf_logit=jnp.full(pts.conf_logit.shape, 2.0))
-    new_api = _new_api()
     t0 = time.perf_counter()
-    scene = PointScene.build(pts, cfg, run.capacities) if new_api else PointScene.build(pts, cfg)
+    scene = PointScene.build(pts, cfg, run.capacities)
     build_s = time.perf_counter() - t0
     cam = Camera.from_fov(cameras.orbit_cameras(4)[1], IMAGE, IMAGE, cameras.CAMERA_ANGLE_X)
     rays = camera_rays(cam, cameras.NEAR, cameras.FAR)
     mid = (IMAGE * IMAGE) // 2 - RENDER_RAYS // 2  # a chunk through the middle of the image
     render_rays = rays.take(slice(mid, mid + RENDER_RAYS))
-    caps = (scene.capacities,) if new_api else ()
-    hits = np.asarray(intersect(scene.tree, rays, cfg.kdtree, *caps).num_segments) > 0
+    hits = np.asarray(intersect(scene.tree, rays, cfg.kdtree, scene.capacities).num_segments) > 0
     rng = np.random.default_rng(0)
     n_hit = int(0.9 * TRAIN_RAYS)
     idx = np.concatenate([rng.choice(np.flatnonzero(hits), n_hit),
@@ -142,7 +132,7 @@ def build_inputs(quick: bool, run=None):
 def whole_calls(quick: bool, run=None):
     """The whole render of the render batch and the whole training step on the training batch
     (:func:`build_inputs`; ``run``: a RunConfig in place of the ``default`` preset), with whatever
-    ``ne_jax`` is importable: ``(render, step, state, new_api)`` with ``render(state) -> RenderOut``,
+    ``ne_jax`` is importable: ``(render, step, state)`` with ``render(state) -> RenderOut``,
     ``step(state) -> (state, metrics)`` and the initial state."""
     import jax
     import jax.numpy as jnp
@@ -153,21 +143,15 @@ def whole_calls(quick: bool, run=None):
     from ne_jax.train.step import make_train_step
 
     run, scene, rrays, trays, _, _ = build_inputs(quick, run)
-    new_api = _new_api()
-    if new_api:  # the packing budget, as training fits it: on the training step's scene
-        cfg = getattr(run, "train_render", run.render)  # a reference from before the training grid has none
-        train_scene = scene.fitted(cfg, trays)
-    else:  # a reference from before Capacities: on the render config
-        from ne_jax.train.loop import fit_segment_budget
-
-        cfg, train_scene = fit_segment_budget(run.render, scene, trays), scene
+    cfg = run.train_render
+    train_scene = scene.fitted(cfg, trays)  # the packing budget, as training fits it
     bg = jnp.ones(3)
     state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
     render = jax.jit(lambda p, sc, r: render_rays(run.render, p, sc, r, bg))
     step = make_train_step(run.train, cfg)
     batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
                   background=bg)
-    return (lambda st: render(st.params, scene, rrays)), (lambda st: step(st, train_scene, batch)), state, new_api
+    return (lambda st: render(st.params, scene, rrays)), (lambda st: step(st, train_scene, batch)), state
 
 
 def measure_whole(repeats: int, quick: bool) -> dict:
@@ -175,14 +159,12 @@ def measure_whole(repeats: int, quick: bool) -> dict:
     is importable (this checkout, or the reference through ``PYTHONPATH``)."""
     import ne_jax
 
-    render, step, state, new_api = whole_calls(quick)
+    render, step, state = whole_calls(quick)
     t_render = best_time(lambda: render(state), repeats)
     t_step = best_time(lambda: step(state)[1]["loss/total"], repeats)
     out = step(state)[1]
-    if new_api:  # segments lost to the packing budget / to the traversal's capacities
-        dropped, overflow = int(out["lost/packing"]), int(out["lost/frontier"]) + int(out["lost/slots"])
-    else:
-        dropped, overflow = int(out["dropped"]), int(out["overflow"])
+    # segments lost to the packing budget / to the traversal's capacities
+    dropped, overflow = int(out["lost/packing"]), int(out["lost/frontier"]) + int(out["lost/slots"])
     return {"ne_jax": str(Path(ne_jax.__file__).resolve().parent.parent), "render_rays_per_s": RENDER_RAYS / t_render,
             "render_ms": 1e3 * t_render, "step_rays_per_s": TRAIN_RAYS / t_step, "step_ms": 1e3 * t_step,
             "loss": float(out["loss/total"]), "dropped": dropped, "overflow": overflow}

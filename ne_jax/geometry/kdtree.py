@@ -21,7 +21,7 @@ and each box contains its children's.
 
 Built on the host (numpy + ``scipy.spatial.cKDTree``), not under ``jit``: a single level's XLA
 ``argsort`` under jit (2^20 points, 0.18-0.19 s) costs more than numpy's split of that level
-(``experiments/bench_geometry.py``, field ``jit_vs_host``), and the candidate sets need k-NN queries,
+(docs/decisions.md, the tree build), and the candidate sets need k-NN queries,
 where scipy's C++ tree is 10-35x faster than the JAX KNN structures measured for docs/design.md. Building
 is rare (after edits and point-cloud rounds); everything the tree feeds (``intersect``,
 ``knn_interpolate``) is jit-compiled.
@@ -32,16 +32,10 @@ point, below log2(n) at a fixed depth, are filled without partitions); ``index``
 the points in slot order + spacing statistics; ``boxes``; ``candidates`` — a canonical set of 96
 for each non-empty node of the five candidate levels (empty nodes: the sentinel, no work), built
 by a cascade of certified supersets whose widths follow the data (see ``_candidate_sets``) on a
-thread pool. ``python -m experiments.bench_geometry --build --repeat 2``
-(``bench_geometry_build.json``: ``build_tree``, a bare ``cKDTree(points)`` and the previous build
-interleaved in one process, best of 2, on the shared 2-core CPU at load 2-4, so only the ratios
-mean much): 1e6 surface points 5.65 s = 11.5x ``cKDTree`` (candidates 3.7 s, splits 1.4 s;
-12-20x in three other runs); 1e6 uniform points 9.8 s = 17x; the paper's depth 21 with 112k points
-3.7 s, 4.4x faster than the previous build. Candidate sets are 65-80% of the build: the exact,
-sorted 96 nearest points of ~``n`` box centres, paid in numpy's per-element work (distances, uint64
-key sorts, gathers) and scipy's wide queries at the growing level; scipy's own k-NN query of those
-rows costs 2.1x the cascade, 15.7x a ``cKDTree`` build (docs/studies/geometry.md, "The build
-against cKDTree").
+thread pool. Candidate sets are 65-80% of the build: the exact, sorted 96 nearest points of ~``n``
+box centres, paid in numpy's per-element work (distances, uint64 key sorts, gathers) and scipy's
+wide queries at the growing level. What the build costs against a bare ``cKDTree(points)``:
+docs/decisions.md, the tree build.
 """
 
 from __future__ import annotations
