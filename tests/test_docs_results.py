@@ -85,3 +85,20 @@ def test_every_results_file_is_cited():
 def test_templates_and_braces_expand():
     assert _expand("x.{json,md}") == ["x.json", "x.md"]
     assert _expand("a{b,c}_{d,e}") == ["ab_d", "ab_e", "ac_d", "ac_e"]
+
+
+def test_readme_tables_are_the_results_files():
+    """README.md's results tables are what ``python -m experiments.readme_tables`` writes from the
+    results files (run it after a results file changes)."""
+    from experiments import readme_tables
+
+    text = (ROOT / "README.md").read_text()
+    assert readme_tables.render(text) == text, "README.md's tables differ: run python -m experiments.readme_tables"
+    assert text.count("<!-- table:") == len(readme_tables.TABLES)
+
+
+def test_readme_is_a_front_door():
+    """At most 150 lines and no commit hashes (the results files keep the provenance)."""
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 150
+    assert not re.search(r"\bcommits? [0-9a-f]{7,40}\b", text)
