@@ -56,6 +56,8 @@ PAPER_ROUNDS = 9
 """The ``paper`` preset's point-cloud rounds (after epochs 4-12)."""
 TEST_VIEWS = 200
 """Test views of a NeRF Synthetic scene, for the projected evaluation."""
+SCENE_ROOT = Path("/tmp/ne_jax_gpu_check/scenes")
+"""Where the generated scenes are kept by default."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -385,7 +387,7 @@ def main(argv=None) -> int:
     ap.add_argument("--budget-s", type=float, default=420.0,
                     help="seconds for the whole check after its scenes exist (default 420: fits 10 minutes of device "
                          "time with the machine's start)")
-    ap.add_argument("--scene-root", type=Path, default=Path("/tmp/ne_jax_gpu_check/scenes"),
+    ap.add_argument("--scene-root", type=Path, default=SCENE_ROOT,
                     help="where the generated scenes are kept (generated there if missing; needs Open3D)")
     ap.add_argument("--run-root", type=Path, default=Path("/tmp/ne_jax_gpu_check/runs"),
                     help="the runs' directories (started afresh)")
