@@ -100,7 +100,8 @@ def write_results(preset: str, root: Path, scenes: dict, results: Path) -> str:
             continue
         psnrs.append(c["psnr"])
         ns = f"{n['psnr']:.2f}" if n else "-"
-        same = ("yes" if n["views"] == c["views"] else "no") if n else "-"
+        same = ("yes" if [Path(v).name for v in n["views"]] == [Path(v).name for v in c["views"]] else "no") \
+            if n else "-"
         lines.append(f"| {name} | {c['psnr']:.2f} | {c['ssim']:.3f} | {ns} | {same} | {c['train_seconds']:.0f} | "
                      f"{c['initial_points']} -> {c['final_points']} |")
     if psnrs:

@@ -4,6 +4,7 @@ Sub-commands:
   demo            the main job on the built-in default scene: make the tiny procedural benchmark,
                   train one scene, evaluate its test views and render an orbit video
   make-benchmark  generate the procedural editing benchmark for a preset
+  make-photos     photos of a built-in scene with known cameras, to try process-images on
   process-images  structure from motion: a folder of photos to a COLMAP scene folder
   train           train a model of a scene folder (NeRF Synthetic, nerfstudio, COLMAP, NSVF, LLFF)
   eval            PSNR, SSIM and LPIPS of a trained run on a split (per view and mean), with the images
@@ -41,12 +42,21 @@ def _cmd_make_benchmark(args) -> int:
     return 0
 
 
+def _cmd_make_photos(args) -> int:
+    from ne_jax.benchmark.photos import write_photos
+
+    report = write_photos(Path(args.out), args.resolution, args.spp)
+    print(f"make-photos: {report['photos']} photos of the blocks scene in {report['seconds']:.0f} s -> {args.out} "
+          f"(true cameras in cameras.json; next: `ne-jax process-images {args.out} --out SCENE`)")
+    return 0
+
+
 def _cmd_process_images(args) -> int:
     from ne_jax.data.sfm import process_images
 
     report = process_images(args.photos, args.out, matcher=args.matcher, camera_model=args.camera_model,
                             single_camera=not args.camera_per_image, max_image_size=args.max_image_size,
-                            overwrite=args.overwrite, verbose=args.verbose)
+                            num_threads=args.threads, overwrite=args.overwrite, verbose=args.verbose)
     print(f"process-images: {report['registered']} of {report['images']} photos registered, {report['points']} "
           f"points -> {args.out} (a COLMAP scene: `ne-jax train {args.out} --out RUN`)")
     return 0
@@ -359,6 +369,12 @@ def build_parser() -> argparse.ArgumentParser:
     mb.add_argument("--seed", type=int, default=0)
     mb.set_defaults(func=_cmd_make_benchmark)
 
+    ph = sub.add_parser("make-photos", help="photos of a built-in scene with known cameras, to try process-images on")
+    ph.add_argument("--out", required=True, help="folder to write the photos (and cameras.json) to")
+    ph.add_argument("--resolution", type=int, default=320, help="pixels a side (default 320)")
+    ph.add_argument("--spp", type=int, default=16, help="path-tracer samples per pixel (default 16)")
+    ph.set_defaults(func=_cmd_make_photos)
+
     pi = sub.add_parser("process-images", help="photos to a COLMAP scene folder (structure from motion with pycolmap)")
     pi.add_argument("photos", help="a folder of .png/.jpg photos of one scene")
     pi.add_argument("--out", required=True, help="the scene folder to write (images/, sparse/0/, sfm.json)")
@@ -369,6 +385,8 @@ def build_parser() -> argparse.ArgumentParser:
     pi.add_argument("--camera-per-image", action="store_true",
                     help="intrinsics per image size and camera (default: one camera shared by every photo)")
     pi.add_argument("--max-image-size", type=int, default=3200, help="longest side features are found at")
+    pi.add_argument("--threads", type=int, default=1,
+                    help="COLMAP's threads (default 1: the same model every run; more is faster, not repeatable)")
     pi.add_argument("--overwrite", action="store_true", help="replace an existing --out folder once done")
     pi.add_argument("--verbose", action="store_true", help="COLMAP's own log on stderr")
     pi.set_defaults(func=_cmd_process_images)

@@ -2,7 +2,7 @@
 folder whose poses match the true ones, and the errors a bad folder of photos gives.
 
 The end-to-end test renders the benchmark's ``blocks`` scene on a textured ground plate
-(``tests/data/sfm_views.py``: why the plate) from two rings of 12 cameras, runs
+(``ne_jax/benchmark/photos.py``: why the plate) from two rings of 12 cameras, runs
 :func:`process_images` on one thread, aligns the recovered camera centres to the true ones by a
 similarity and checks every camera's rotation and centre. "Scene size" for the centre tolerance is
 the RMS distance of the true camera centres from their centroid (3.4 units; the object itself is
@@ -40,7 +40,7 @@ def _opencv_c2w_rotation(c2w_opengl: np.ndarray) -> np.ndarray:
 def reconstruction(tmp_path_factory):
     """``(root, names, c2w [n, 4, 4] true OpenGL cameras, report, progress lines, seconds)``."""
     pytest.importorskip("mitsuba")
-    from tests.data.sfm_views import render_photos
+    from ne_jax.benchmark.photos import render_photos
 
     root = tmp_path_factory.mktemp("sfm")
     t0 = time.perf_counter()

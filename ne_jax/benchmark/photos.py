@@ -1,5 +1,6 @@
-"""Photos with known cameras for the structure-from-motion test: the benchmark's ``blocks`` scene,
-path-traced (:mod:`ne_jax.benchmark.pathtracer`), standing on a textured ground plate.
+"""Photos with known cameras, to try structure from motion on (``ne-jax make-photos``, and the
+test of ``ne-jax process-images``): the benchmark's ``blocks`` scene, path-traced
+(:mod:`ne_jax.benchmark.pathtracer`), standing on a textured ground plate.
 
 The benchmark scenes alone give SIFT too little to match: the checker of ``blocks`` repeats (its
 corners all look alike, so the ratio test drops them), the drum's stripes and the ball's paint are
@@ -105,3 +106,20 @@ def render_photos(folder: Path, resolution: int = 256, spp: int = 16, per_ring: 
         names.append(f"view_{i:03d}.png")
         write_image(folder / names[-1], rgba[..., :3] * alpha + BACKGROUND * (1 - alpha))
     return names, c2ws
+
+
+def write_photos(folder: Path, resolution: int = 320, spp: int = 16, per_ring: int = 12) -> dict:
+    """:func:`render_photos` into ``folder`` plus ``folder/cameras.json`` with the true cameras
+    (``{name: c2w}``, OpenGL, the benchmark's world) to compare a reconstruction with. Returns
+    ``{"photos", "seconds"}``."""
+    import json
+    import time
+
+    t0 = time.perf_counter()
+    folder = Path(folder)
+    names, c2ws = render_photos(folder / "photos_tmp", resolution, spp, per_ring)
+    for name in names:
+        (folder / "photos_tmp" / name).replace(folder / name)
+    (folder / "photos_tmp").rmdir()
+    (folder / "cameras.json").write_text(json.dumps({n: m.tolist() for n, m in zip(names, c2ws)}, indent=1) + "\n")
+    return {"photos": len(names), "seconds": round(time.perf_counter() - t0, 1)}
