@@ -119,7 +119,10 @@ def band_mask(alpha: np.ndarray, width: int) -> np.ndarray:
 
 
 def build_pool(cfg: SamplerConfig, split: SceneSplit, background) -> RayPool:
-    """Host side, once per split: the foreground and band pixels and their targets.
+    """Host side, once per split: the foreground and band pixels and their targets. Besides the
+    split's images it holds a few bytes per pixel (the masks) and the pool's pixels while it builds:
+    the targets are composited at those pixels only. On the device the pool holds 16 bytes per
+    foreground and band pixel (an index and an RGB target) and the cameras.
 
     ``background``: anything :func:`~ne_jax.data.nerf_synthetic.parse_background` accepts
     (``"white"``, ``"black"``, ``(r, g, b)``).
@@ -137,17 +140,20 @@ def build_pool(cfg: SamplerConfig, split: SceneSplit, background) -> RayPool:
             "views; nothing to train on (check the masks / alpha channel)")
     band = band_mask(alpha, cfg.band_width)
     bg = parse_background(background)
-    rgb = np.asarray(composite(images, bg), np.float32).reshape(-1, 3)
     fg_index = np.flatnonzero(fg.ravel()).astype(np.int32)
     band_index = np.flatnonzero(band.ravel()).astype(np.int32)
+    # composited at the pool's pixels only: the whole split composited would hold 3/4 of its images again
+    flat = images.reshape(-1, 4)
+    fg_target, band_target = (np.asarray(composite(flat[i], bg), np.float32) for i in (fg_index, band_index))
     num_band = int(round(cfg.band_fraction * cfg.batch_size)) if band_index.size else 0
     if num_band >= cfg.batch_size:
         num_band = cfg.batch_size - 1
     if band_index.size == 0:  # placeholder row so shapes stay non-empty; never drawn (num_band = 0)
         band_index = np.zeros((1,), np.int32)
+        band_target = np.asarray(composite(flat[band_index], bg), np.float32)
     return RayPool(
-        fg_index=jnp.asarray(fg_index), fg_target=jnp.asarray(rgb[fg_index]),
-        band_index=jnp.asarray(band_index), band_target=jnp.asarray(rgb[band_index]),
+        fg_index=jnp.asarray(fg_index), fg_target=jnp.asarray(fg_target),
+        band_index=jnp.asarray(band_index), band_target=jnp.asarray(band_target),
         c2w=jnp.asarray(split.c2w, jnp.float32),
         intrinsics=jnp.asarray([split.fx, split.fy, split.cx, split.cy], jnp.float32),
         background=jnp.asarray(bg, jnp.float32), width=w, height=h, num_band=num_band)
