@@ -130,7 +130,7 @@ PRESETS = {
     "tiny": BenchmarkPreset("tiny", 64, 24, 4, 8, 2, 0.75, 20_000),
     "default": BenchmarkPreset("default", 200, 100, 10, 20, 3, 1.0, 200_000),
     # The path-traced variants: the same scenes, views and edits, rendered by Mitsuba 3 at 256 spp
-    # (seed-to-seed PSNR >= 40 dB on every scene, experiments/pathtraced_noise.py).
+    # (seed-to-seed PSNR >= 40 dB on every scene, docs/decisions.md, "The path tracer's noise floor").
     "tiny_pt": BenchmarkPreset("tiny_pt", 64, 24, 4, 8, 1, 0.75, 20_000, renderer="pathtrace", spp=256),
     "default_pt": BenchmarkPreset("default_pt", 200, 100, 10, 20, 1, 1.0, 200_000, renderer="pathtrace", spp=256),
     # The capture variants: the path-traced scenes and edits with the environment visible and a ground,

@@ -6,7 +6,7 @@ It is the alternative to :mod:`ne_jax.benchmark.raycaster` for the ``*_pt`` pres
 inter-reflected inside the open cup and between parts, glossy reflections of the whole environment
 (not just the sky gradient), soft shadows from area-like sun spots, and a metal whose reflection is
 tinted. What it costs is Monte Carlo noise (``spp`` samples per pixel; the noise floor is measured by
-``experiments/pathtraced_noise.py``) and time.
+docs/decisions.md, "The path tracer's noise floor") and time.
 
 * **Environment** (:func:`environment_map`): a lat-long map made here (nothing is downloaded): the ray
   caster's sky gradient (warm ground to blue sky) plus two bright sun spots in the directions of its
