@@ -160,6 +160,16 @@ def _load(args):
     return model, scene_dir
 
 
+def _source_scene(run_dir) -> Path | None:
+    """The scene an edited run's source model was trained on (its cameras serve a render of an edit
+    that has no ground truth), from ``metrics.json``'s ``source``; ``None`` when not recorded."""
+    import json
+
+    file = Path(run_dir) / "metrics.json"
+    found = json.loads(file.read_text(encoding="utf-8")).get("source", {}) if file.is_file() else {}
+    return Path(found["scene_dir"]) if isinstance(found, dict) and found.get("scene_dir") else None
+
+
 def _need_scene(scene_dir, run) -> Path:
     if scene_dir is None:
         raise FileNotFoundError(f"{run}: no scene folder recorded in metrics.json; pass --scene DIR")
@@ -184,7 +194,7 @@ def _cmd_render(args) -> int:
     model, scene_dir = _load(args)
     run = model.run
     background = args.background or run.background
-    split = load_split(_need_scene(scene_dir, args.run), args.split, run.downscale)
+    split = load_split(_need_scene(scene_dir or _source_scene(args.run), args.run), args.split, run.downscale)
     if args.orbit:
         cameras = orbit_cameras_for(split, args.orbit, args.elevation)
         frames = render_views(run.render, model.state.params, model.scene, cameras, background, run.sampler.near,
