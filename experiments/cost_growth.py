@@ -12,6 +12,7 @@ points, the tree's depth fitted to them, 17; the pool of a 200 px scene of 100 t
   device bytes it holds, the process's peak memory while building it), a batch drawn from it, and a
   step on those batches (the same compiled step: it should cost the same at every size);
 * **cloud**: a step on 100,000, 300,000 and 1,000,000 points (the tree's depth fitted: 17, 19, 20);
+  each axis measures its own reference row, as the load of a shared machine drifts;
 * **depth**: a step on 100,000 points with the tree fixed at 17 to 21 levels (the ``paper`` preset's 21);
 * **render**: a test view rendered at 200, 400 and 800 px at the preset's 2 x 2 rays per pixel;
 * **round**: the point-cloud round's stages (growth scan of 8,192 rays, prune, denoise, normals) and
@@ -149,14 +150,16 @@ def _step_fn(train, render):
     return make_train_step(train, render, ray_mesh(1))
 
 
-def program_mib(compiled) -> float | None:
-    """XLA's memory analysis of a compiled program: arguments, outputs and temporaries less what
-    outputs alias, in MiB (``None`` where the backend gives none)."""
+def program_memory(compiled) -> dict:
+    """XLA's memory analysis of a compiled program in MiB: ``program_mib`` (arguments, outputs and
+    temporaries, less what outputs alias) and each part (``None`` where the backend gives none)."""
     m = compiled.memory_analysis()
+    parts = ("argument", "output", "temp", "alias")
     if m is None:
-        return None
-    total = m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes
-    return round(total / 2**20, 1)
+        return {"program_mib": None, **{f"{k}_mib": None for k in parts}}
+    mib = {k: getattr(m, f"{k}_size_in_bytes") / 2**20 for k in parts}
+    total = mib["argument"] + mib["output"] + mib["temp"] - mib["alias"]
+    return {"program_mib": round(total, 1), **{f"{k}_mib": round(v, 1) for k, v in mib.items()}}
 
 
 def step_cost(run, points, pool, steps: int, repeats: int, compiled: dict | None = None) -> dict:
@@ -192,7 +195,7 @@ def step_cost(run, points, pool, steps: int, repeats: int, compiled: dict | None
             state, per, _, _ = timed_steps(step, state, scene, batches)
             best = min(best, per)
     return {"ms": round(1e3 * best, 2), "compile_s": round(compile_s, 1), "tree_depth": int(scene.tree.depth),
-            "tree_build_s": round(build_s, 2), "segments_lost": lost.total, "program_mib": program_mib(step),
+            "tree_build_s": round(build_s, 2), "segments_lost": lost.total, **program_memory(step),
             **peak.record()}
 
 
@@ -300,7 +303,7 @@ def study(a: Axes, scene_root: Path, steps: int, repeats: int, render_repeats: i
     for b in a.batch:
         add("batch", b, "step", **step_cost(run.replace(sampler=run.sampler.replace(batch_size=b)), pts[ref_points],
                                             ref_pool, steps, repeats, compiled))
-    for n in a.clouds[1:]:
+    for n in a.clouds:  # the reference again (compiled already): the load on a shared machine drifts
         add("cloud", n, "step", **step_cost(run, pts[n], ref_pool, steps, repeats, compiled))
     for d in a.depths:
         fixed = run.replace(render=run.render.replace(kdtree=run.render.kdtree.replace(depth=d)))
@@ -345,12 +348,11 @@ def work(row: dict, ref: dict) -> float:
 
 
 def with_ratios(rows: list[dict], a: Axes) -> list[dict]:
-    """Each row with ``ratio`` (its cost over its axis's reference row's; the cloud axis's reference
-    is the image axis's reference step, the same step on the reference cloud), ``work`` (:func:`work`)
+    """Each row with ``ratio`` (its cost over its axis's reference row's), ``work`` (:func:`work`)
     and ``growth`` (ratio / work); a round row also has each stage's ratio."""
     ref = references(a)
     for r in rows:
-        axis = "image" if r["axis"] == "cloud" else r["axis"]
+        axis = r["axis"]
         base = next(x for x in rows if x["axis"] == axis and x["what"] == r["what"] and x["value"] == ref[axis])
         key = COST[r["what"]]
         r["ratio"] = round(r[key] / base[key], 3) if base[key] else None
@@ -390,7 +392,9 @@ def markdown(res: dict) -> str:
             cost, notes = f"{r['ms']:.0f} ms", f"{r['rays']} rays, {r['rays_per_s']} rays/s, compile {r['compile_s']} s"
         else:
             cost = f"{r['ms']:.1f} ms"
-            notes = f"depth {r['tree_depth']}, tree build {r['tree_build_s']} s, compile {r['compile_s']} s"
+            notes = (f"depth {r['tree_depth']}, tree build {r['tree_build_s']} s, compile {r['compile_s']} s, program: "
+                     f"arguments {r['argument_mib']}, outputs {r['output_mib']}, temporaries {r['temp_mib']} MiB, "
+                     f"{r['segments_lost']} segments lost")
         L.append(f"| {r['axis']} | {r['value']} | {r['what']} | {cost} | {r['ratio']} | {r['work']} | {r['growth']} | "
                  f"{r.get('program_mib', '')} | {r['delta_mib']} | {notes} |")
     return "\n".join(L) + "\n"
