@@ -32,11 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from ne_jax.atomic import atomic_directory, atomic_write_json
+from ne_jax.data.formats._common import IMAGE_SUFFIXES
 from ne_jax.data.formats.colmap import SUPPORTED_MODELS
 from ne_jax.data.png import DataError, fail
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-"""The photo files :func:`process_images` takes (case-insensitive)."""
 MIN_IMAGES = 3
 """Fewest photos, and fewest registered images, a reconstruction is accepted with."""
 MATCHERS = ("exhaustive", "sequential")

@@ -26,7 +26,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ne_jax.pointcloud.init import Views
+from ne_jax.pointcloud.init import Views, bilinear
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,21 +38,6 @@ class HoleSearch:
     max_cost: float = 0.08
     peak_ratio: float = 0.5
     margin: float = 0.05
-
-
-def _bilinear_many(images: np.ndarray, view: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``images`` ``[V, H, W, C]`` looked up at ``(view, u, v)`` (each ``[N]``; pixel centres at
-    ``i + 0.5``, clamped at the border) -> ``[N, C]``."""
-    _, h, w, _ = images.shape
-    x = np.clip(u - 0.5, 0.0, w - 1.0)
-    y = np.clip(v - 0.5, 0.0, h - 1.0)
-    x0 = np.minimum(x.astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(y.astype(np.int64), max(h - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    top = images[view, y0, x0] * (1 - fx) + images[view, y0, x1] * fx
-    bot = images[view, y1, x0] * (1 - fx) + images[view, y1, x1] * fx
-    return top * (1 - fy) + bot * fy
 
 
 def box_stretch(origin: np.ndarray, direction: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -97,7 +82,7 @@ def hole_candidates(cfg: HoleSearch, views: Views, origin: np.ndarray, direction
         return xyz, cost, found
     pick = np.argsort(-cos, axis=1)[:, :k]  # [R, k] the views looking most like the ray
 
-    rgb = views.rgb if views.rgb is not None else None
+    rgb = views.rgb
     if rgb is None:
         raise ValueError("hole_candidates: expected views with colours (Views.rgb), found None")
     masked = bool((views.alpha < 0.99).any())
@@ -107,18 +92,14 @@ def hole_candidates(cfg: HoleSearch, views: Views, origin: np.ndarray, direction
     flat = pts.reshape(-1, 3)
     for j in range(k):
         view = np.repeat(pick[:, j], cfg.depths)
-        rot, cen = views.c2w[view, :3, :3], views.c2w[view, :3, 3]
-        cam = np.einsum("nk,nkj->nj", flat - cen, rot)
-        depth = -cam[:, 2]
-        safe = np.where(depth > 1e-9, depth, 1.0)
-        u, v = views.cx + views.fx * cam[:, 0] / safe, views.cy - views.fy * cam[:, 1] / safe
+        u, v, depth = views.project(view, flat)
         seen = (depth > 1e-9) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        colour = _bilinear_many(rgb, view, u, v)
+        colour = bilinear(rgb, u, v, view)
         diff = np.abs(colour - np.repeat(target, cfg.depths, axis=0)).mean(1)
         total += np.where(seen, diff, 0.0).reshape(r, -1)
         count += seen.reshape(r, -1)
         if masked:
-            a = _bilinear_many(views.alpha[..., None], view, u, v)[:, 0]
+            a = bilinear(views.alpha, u, v, view)
             outside |= (seen & (a < 0.5)).reshape(r, -1)
     with np.errstate(invalid="ignore", divide="ignore"):
         sample_cost = np.where((count >= 2) & ~outside, total / np.maximum(count, 1), np.inf)

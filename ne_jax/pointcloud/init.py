@@ -156,11 +156,13 @@ class Views:
         """``[V, 3]`` camera centres."""
         return self.c2w[:, :3, 3]
 
-    def project(self, view: int, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def project(self, view: int | np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pixel coordinates ``u, v`` ``[N]`` (continuous, pixel centres at ``i + 0.5``) and depth
-        ``[N]`` (distance along the viewing axis, positive in front) of points ``[N, 3]``."""
-        rot = self.c2w[view, :3, :3]
-        cam = (xyz - self.c2w[view, :3, 3]) @ rot  # world -> camera: R^T (x - t)
+        ``[N]`` (distance along the viewing axis, positive in front) of points ``[N, 3]`` in one view
+        (``view`` an index) or each in its own (``view`` ``[N]`` indices)."""
+        rot, centre = self.c2w[view, :3, :3], self.c2w[view, :3, 3]
+        # world -> camera: R^T (x - t)
+        cam = (xyz - centre) @ rot if rot.ndim == 2 else np.einsum("nk,nkj->nj", xyz - centre, rot)
         depth = -cam[:, 2]
         safe = np.where(depth > 1e-9, depth, 1.0)
         u = self.cx + self.fx * cam[:, 0] / safe
@@ -168,20 +170,22 @@ class Views:
         return u, v, depth
 
 
-def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of ``img`` ``[H, W]`` or ``[H, W, C]`` at continuous pixel coordinates ``[N]``
-    (centres at ``i + 0.5``), clamped at the border; returns ``[N]`` or ``[N, C]``."""
-    h, w = img.shape[:2]
+def bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear lookup at continuous pixel coordinates ``u, v`` ``[N]`` (centres at ``i + 0.5``),
+    clamped at the border, of ``img`` ``[H, W]`` or ``[H, W, C]``, or with ``view`` ``[N]`` of the
+    images ``img[view]`` of a stack ``[V, H, W(, C)]``; returns ``[N]`` or ``[N, C]``."""
+    h, w = img.shape[:2] if view is None else img.shape[1:3]
     x = np.clip(u - 0.5, 0.0, w - 1.0)
     y = np.clip(v - 0.5, 0.0, h - 1.0)
     x0 = np.minimum(x.astype(np.int64), w - 2) if w > 1 else np.zeros(x.shape, np.int64)
     y0 = np.minimum(y.astype(np.int64), h - 2) if h > 1 else np.zeros(y.shape, np.int64)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
-    if img.ndim == 3:
+    pixel = (lambda yy, xx: img[yy, xx]) if view is None else (lambda yy, xx: img[view, yy, xx])
+    if img.ndim == (2 if view is None else 3) + 1:  # a channel axis
         fx, fy = fx[:, None], fy[:, None]
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    top = pixel(y0, x0) * (1 - fx) + pixel(y0, x1) * fx
+    bot = pixel(y1, x0) * (1 - fx) + pixel(y1, x1) * fx
     return top * (1 - fy) + bot * fy
 
 
@@ -191,7 +195,7 @@ def _carves(views: Views, view: int, xyz: np.ndarray, alpha_threshold: float) ->
     u, v, depth = views.project(view, xyz)
     inside = (depth > 1e-6) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
     carved = np.zeros(len(xyz), bool)
-    carved[inside] = _bilinear(views.alpha[view], u[inside], v[inside]) <= alpha_threshold
+    carved[inside] = bilinear(views.alpha[view], u[inside], v[inside]) <= alpha_threshold
     return carved, inside
 
 
@@ -406,8 +410,8 @@ def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray,
             if sel.size:
                 u, v, _ = views.project(k, at[sel])
                 a = views.alpha[k]
-                premultiplied = _bilinear(views.rgb[k] * a[..., None], u, v)
-                color[k, sel] = premultiplied / np.maximum(_bilinear(a, u, v), 1e-6)[:, None]
+                premultiplied = bilinear(views.rgb[k] * a[..., None], u, v)
+                color[k, sel] = premultiplied / np.maximum(bilinear(a, u, v), 1e-6)[:, None]
         count = vis.sum(0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: voxels nobody sees

@@ -76,9 +76,10 @@ def initial_cloud(cfg: InitConfig, scene_dir: Path, views: Views) -> InitialClou
     """The run's initial cloud (see :class:`InitConfig`); carving with one view uses ``min_views=1``.
     ``info["why"]`` says why ``"auto"`` chose its source."""
     source, why = cfg.source, f"init.source = {cfg.source!r}"
+    found = scene_points(scene_dir) if source in ("auto", "sfm") else None
     if source == "auto":
         has_masks = bool((views.alpha < 0.99).any())
-        if scene_points(scene_dir) is not None:
+        if found is not None:
             source, why = "sfm", f"auto: the {detect_format(scene_dir)} scene has structure-from-motion points"
         elif has_masks:
             source, why = "carving", "auto: the training images have alpha masks (a visual hull)"
@@ -92,7 +93,6 @@ def initial_cloud(cfg: InitConfig, scene_dir: Path, views: Views) -> InitialClou
     elif source == "ground_truth":
         cloud = ground_truth_cloud(scene_dir)
     elif source == "sfm":
-        found = scene_points(scene_dir)
         if found is None:
             raise CarvingError(f"{scene_dir}: init.source='sfm' but the scene folder has no structure-from-motion "
                                "points (COLMAP points3D, nerfstudio ply_file_path)")

@@ -9,7 +9,7 @@ from ne_jax.benchmark.generate import generate_scene
 from ne_jax.data.ply import read_ply
 from ne_jax.data.scene import load_split
 from ne_jax.pointcloud.holes import HoleSearch, box_stretch, hole_candidates
-from ne_jax.pointcloud.init import Views, _bilinear, visibility
+from ne_jax.pointcloud.init import Views, bilinear, visibility
 from ne_jax.pointcloud.normals import mean_spacing
 
 from tests.mini_presets import mini_benchmark
@@ -31,12 +31,12 @@ def _patch_rays(views, surface, centre, radius):
     pts = surface[in_patch & seen]
     u, v, _ = views.project(0, pts)
     h, w = views.alpha.shape[1:]
-    ok = (u > 1) & (u < w - 1) & (v > 1) & (v < h - 1) & (_bilinear(views.alpha[0], u, v) > 0.99)
+    ok = (u > 1) & (u < w - 1) & (v > 1) & (v < h - 1) & (bilinear(views.alpha[0], u, v) > 0.99)
     pts, u, v = pts[ok], u[ok], v[ok]
     origin = np.repeat(views.c2w[0, :3, 3][None], len(pts), axis=0)
     direction = pts - origin
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    return origin, direction, _bilinear(views.rgb[0], u, v), pts, in_patch
+    return origin, direction, bilinear(views.rgb[0], u, v), pts, in_patch
 
 
 def test_a_cut_patch_is_found_again_on_the_surface(scene):

@@ -13,6 +13,7 @@ from ne_jax.pointcloud.init import (
     CarveConfig,
     CarvingError,
     Views,
+    bilinear,
     carve_occupancy,
     carve_visual_hull,
     ground_truth_cloud,
@@ -166,6 +167,23 @@ def test_views_checks_shapes():
         Views.create(np.zeros((2, 4, 4)), np.zeros((3, 4, 4)), 1, 1, 2, 2)
     with pytest.raises(ValueError, match="fx: expected a positive focal length"):
         Views.create(np.zeros((1, 4, 4)), np.eye(4)[None], 0.0, 1, 2, 2)
+
+
+def test_per_point_views_match_one_view_at_a_time(sphere):
+    """``Views.project`` and ``bilinear`` with a view per point give what one view at a time gives."""
+    views = sphere
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(-0.5, 0.5, (40, 3))
+    view = rng.integers(0, views.num_views, 40)
+    u, v, depth = views.project(view, xyz)
+    stack = np.stack([views.alpha, 1 - views.alpha], -1)  # [V, H, W, 2]
+    looked = bilinear(stack, u, v, view)
+    for k in np.unique(view):
+        sel = view == k
+        uk, vk, dk = views.project(int(k), xyz[sel])
+        np.testing.assert_allclose(np.stack([u[sel], v[sel], depth[sel]]), np.stack([uk, vk, dk]), rtol=1e-12)
+        np.testing.assert_allclose(looked[sel], bilinear(stack[k], uk, vk), rtol=1e-6)
+        np.testing.assert_allclose(bilinear(views.alpha, u[sel], v[sel], view[sel]), looked[sel, 0], rtol=1e-6)
 
 
 def test_object_touching_the_bounds_warns(sphere):

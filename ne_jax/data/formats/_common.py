@@ -11,7 +11,8 @@ import numpy as np
 from ne_jax.data.png import DataError, fail
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-"""Image files the folder-listing readers (NSVF, LLFF) pick up, compared case-insensitively."""
+"""Image files the folder-listing readers (NSVF, LLFF) and `process-images` pick up, compared
+case-insensitively."""
 
 
 def number(value: Any, path: Any, where: str) -> float:
