@@ -116,7 +116,7 @@ def _resampled(model, n: int, seed: int = 0):
 
 
 def _edit_100k(model, n: int, size: int) -> dict:
-    from ne_jax.edit.model import edit_model
+    from ne_jax.edit.model import edit_model, model_edit_context
     from ne_jax.view import edits as E
     from ne_jax.view.frames import camera_from_viewer, render_frame
 
@@ -136,7 +136,8 @@ def _edit_100k(model, n: int, size: int) -> dict:
     turn = E.Transform.from_euler(E.selection_center(edit, sel), (0.05, 0, 0), (0, 0, 30))
     moved = E.move_points(edit, sel, turn)
     t2 = time.perf_counter()
-    edited, report = edit_model(big, moved.rows(), label="bench_view")
+    context = model_edit_context(big)  # made by the viewer's first edit and kept (Viewer._edit_context)
+    edited, report = edit_model(big, moved.rows(), label="bench_view", context=context)
     t3 = time.perf_counter()
     _, render_first = render_frame(edited, cam)
     _, render_again = render_frame(edited, cam)
@@ -146,7 +147,7 @@ def _edit_100k(model, n: int, size: int) -> dict:
     sel2 = E.select_region(moved, region2)
     moved2 = E.move_points(moved, sel2, E.Transform.from_euler(E.selection_center(moved, sel2), (0, 0.05, 0),
                                                                (0, 0, -20)))
-    edited2, _ = edit_model(big, moved2.rows(), label="bench_view")
+    edited2, _ = edit_model(big, moved2.rows(), label="bench_view", context=context)
     t5 = time.perf_counter()
     _, render_warm = render_frame(edited2, cam)
     return {"points": n, "selected": int(sel.size), "tree_build_s": round(build_s, 2),

@@ -28,7 +28,7 @@ from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.scenes import SCENES
 from ne_jax.config_json import config_key
 from ne_jax.data.scene import load_split, scene_points
-from ne_jax.edit.model import edit_model, finetune
+from ne_jax.edit.model import edit_model, finetune, model_edit_context
 from ne_jax.eval import evaluate_model
 from ne_jax.train.effects import declare_effects
 from ne_jax.train.loop import train
@@ -67,11 +67,12 @@ def run_edits(model, scene_dir: Path, runs: Path, finetune_edits: list[str]) -> 
 
     meta = json.loads((scene_dir / "scene.json").read_text())
     out = {}
+    context = model_edit_context(model)  # shared by every edit of the model
     for name in get_scene(meta["scene"]).edits:
         edit, truth = benchmark_edit(scene_dir, name)
         if truth is None:
             continue
-        edited, _ = edit_model(model, edit, runs / f"edit_{name}", scene_dir=truth)
+        edited, _ = edit_model(model, edit, runs / f"edit_{name}", scene_dir=truth, context=context)
         row = {"zero_shot": _score(edited, truth)}
         if name in finetune_edits:
             tuned = finetune(load_trained(runs / f"edit_{name}"), runs / f"finetune_{name}", 1, progress=False,

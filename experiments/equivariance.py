@@ -28,7 +28,7 @@ import numpy as np
 
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.data.nerf_synthetic import load_split
-from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
+from ne_jax.edit.apply import EditConfig, apply_edit, edit_context, edited_render_config
 from ne_jax.edit.deformations import Edit, rigid_scene
 from ne_jax.edit.fidelity import equivariance, exact_rigid_points
 from ne_jax.edit.ist import ISTConfig
@@ -75,14 +75,15 @@ def measure_motions(model, cameras, pts, pivot, log) -> tuple[list[dict], np.nda
     near, far = run.sampler.near, run.sampler.far
     ref = None
     rows = []
+    context = edit_context(EditConfig(), pts, model.scene, run.render)  # shared by every motion of the model
     for label, edit, kind in motions(pivot):
         row = {"motion": label, "kind": kind}
         for tree in ("carry", "rebuild"):
             cfg = EditConfig(rebuild_tree=tree == "rebuild")
             t0 = time.perf_counter()
-            points = apply_edit(pts, edit, cfg)
+            points = apply_edit(pts, edit, cfg, context)
             render = edited_render_config(run.render, ist=True)
-            scene = cfg.scene(model.scene, points, render)
+            scene = cfg.scene(model.scene, points, render, context)
             res = equivariance(run.render, model.state.params, model.scene, render, scene, edit.matrix, cameras,
                                run.background, near, far, reference=ref)
             ref = res["reference"]
@@ -100,10 +101,12 @@ def diagnose(model, cameras, pts, pivot, ref, log) -> list[dict]:
     name, angle = DIAGNOSE
     edit = rigid_scene("diagnose", AXES[name], angle, pivot)
     render = edited_render_config(run.render, ist=True)
-    fitted = apply_edit(pts, edit)  # normals re-estimated, ISTs fitted (the default edit path)
-    exact = exact_rigid_points(pts, edit.matrix)
-    no_fill = apply_edit(pts, edit, EditConfig(ist=ISTConfig(fill_passes=0, smooth_iters=0)))
     base = model.scene
+    context = edit_context(EditConfig(), pts, base, run.render)  # shared by every stage
+    fitted = apply_edit(pts, edit, context=context)  # normals re-estimated, ISTs fitted (the default edit path)
+    exact = exact_rigid_points(pts, edit.matrix)
+    no_fill = apply_edit(pts, edit, EditConfig(ist=ISTConfig(fill_passes=0, smooth_iters=0)), context)
+    carried = {"context": context.carry}  # the carries' keyword arguments (PointScene.edited)
     rebuilt = PointScene.build(fitted, render, base.capacities)
     stages = [
         ("tree rebuilt (paper)", "rebuild", render, rebuilt),
@@ -111,14 +114,15 @@ def diagnose(model, cameras, pts, pivot, ref, log) -> list[dict]:
          rebuilt.replace(tree=rebuilt.tree.replace(spacing=base.tree.spacing))),
         ("tree rebuilt, normals and ISTs exact", "rebuild", render, PointScene.build(exact, render, base.capacities)),
         ("partition kept; world boxes re-fitted, candidate sets re-chosen", "carry", render,
-         base.edited(fitted, render, oriented=False, recompute_candidates=True)),
+         base.edited(fitted, render, oriented=False, recompute_candidates=True, **carried)),
         ("partition and candidate sets kept; world boxes re-fitted", "carry", render,
-         base.edited(fitted, render, oriented=False)),
-        ("tree carried: boxes in their frames (default)", "carry", render, base.edited(fitted, render)),
-        ("tree carried, normals and ISTs exact", "carry", render, base.edited(exact, render)),
-        ("tree carried, IST without filling and smoothing", "carry", render, base.edited(no_fill, render)),
+         base.edited(fitted, render, oriented=False, **carried)),
+        ("tree carried: boxes in their frames (default)", "carry", render, base.edited(fitted, render, **carried)),
+        ("tree carried, normals and ISTs exact", "carry", render, base.edited(exact, render, **carried)),
+        ("tree carried, IST without filling and smoothing", "carry", render,
+         base.edited(no_fill, render, **carried)),
         ("tree carried, IST effect off", "carry", edited_render_config(run.render, ist=False),
-         base.edited(fitted, render)),
+         base.edited(fitted, render, **carried)),
     ]
     rows = []
     for label, tree, cfg, scene in stages:

@@ -49,7 +49,7 @@ from jax.flatten_util import ravel_pytree
 
 from ne_jax.compiles import count_compiles
 from ne_jax.data.rays import Rays
-from ne_jax.edit.apply import EditConfig, EditPlan, edited_points, plan_edit
+from ne_jax.edit.apply import EditConfig, EditContext, EditPlan, edit_context, edited_points, plan_edit
 from ne_jax.edit.deformations import bend_points, jacobian_normals
 from ne_jax.geometry.capacity import Capacities, grow
 from ne_jax.geometry.kdtree import KDTree, build_tree
@@ -145,13 +145,15 @@ class EditLoss:
     value_and_grad: Callable
 
     def topology(self, points: PointState, theta, deleted=None,
-                 capacities: Capacities = Capacities()) -> EditTopology:
+                 capacities: Capacities = Capacities(), context: EditContext | None = None) -> EditTopology:
         """Host side: plan the edit ``points -> deform(theta, points.xyz)`` (deleting ``deleted [C]``,
         decided in the original space and independent of ``theta``) and build the K-D tree of the
-        edited cloud at this estimate, to render with ``capacities``."""
+        edited cloud at this estimate, to render with ``capacities``. ``context``:
+        :func:`~ne_jax.edit.apply.edit_context` of ``points`` for these deletions, held across
+        re-plans (made on the spot when ``None``)."""
         xyz = np.asarray(self.deform(theta, points.xyz))
         deleted = np.zeros(points.capacity, bool) if deleted is None else np.asarray(deleted, bool)
-        plan = plan_edit(self.edit_cfg, points, xyz, deleted)
+        plan = plan_edit(self.edit_cfg, points, xyz, deleted, context)
         edited = self.scene(theta, points, EditTopology(plan=plan, tree=None))
         tree = build_tree(np.asarray(edited.points.xyz), np.asarray(edited.points.alive), self.render_cfg.kdtree)
         return EditTopology(plan=plan, tree=tree, xyz=edited.points.xyz, capacities=capacities)
@@ -305,10 +307,13 @@ def recover_parameter(problem: EditLoss, params, points: PointState, theta0, ray
     background = jnp.asarray(background)
     topology = None
     fn = problem.value_and_grad
+    # every re-plan edits the same cloud with the same deletions: its neighbour table is made once
+    kept = np.asarray(points.alive) if deleted is None else np.asarray(points.alive) & ~np.asarray(deleted, bool)
+    context = edit_context(problem.edit_cfg, points, alive=kept)
     for step in range(steps + 1):
         rebuild = topology is None or (rebuild_every > 0 and step % rebuild_every == 0)
         if rebuild:
-            topology = problem.topology(points, theta, deleted, capacities)
+            topology = problem.topology(points, theta, deleted, capacities, context)
         with count_compiles() as compiled:  # around fn only: topology and updates compile eager operations
             (value, out), grad = fn(theta, params, points, topology, rays, targets, background)
         traj.compiles += compiled.count

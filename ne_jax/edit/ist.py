@@ -48,7 +48,6 @@ import numpy as np
 from flax import struct
 from scipy.spatial import cKDTree
 
-from ne_jax.memo import LastResults, array_key
 from ne_jax.numerics import safe_div, safe_sqrt
 
 
@@ -147,16 +146,57 @@ def _unit_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x / np.where(length > 0, length, 1.0)[..., None], length
 
 
-_NEIGHBORS = LastResults(2)  # every edit of one cloud that deletes the same points shares its table
+@dataclasses.dataclass(frozen=True, eq=False)
+class NeighborTable:
+    """The IST's neighbour table of one cloud for one set of points alive after the edit (host side,
+    read-only arrays), made by :func:`ist_neighbors`. Every edit of the cloud that deletes the same
+    points shares it: hold it and pass it back.
+
+    Attributes:
+        xyz0: ``[C, 3]`` float64 the original positions it was made on.
+        alive: ``[C]`` bool the points alive after the edit, among which neighbours are chosen.
+        candidates: ``k``, the neighbours per slot (``ISTConfig.candidates``).
+        neighbors: ``[C, k]`` int64 neighbours of every slot among ``alive``, nearest first (0 where unused).
+        valid: ``[C, k]`` bool which entries of ``neighbors`` are used.
+    """
+
+    xyz0: np.ndarray
+    alive: np.ndarray
+    candidates: int
+    neighbors: np.ndarray
+    valid: np.ndarray
 
 
-def ist_neighbors(cfg: ISTConfig, xyz0, alive1) -> tuple[np.ndarray, np.ndarray]:
-    """The ``k = cfg.candidates`` nearest neighbours of every slot in the original cloud among the
-    points alive after the edit (host): ``(neighbors [C, k] int64, valid [C, k] bool)``, nearest first
-    (read-only: the table of the last clouds is kept, for the next edit of the same cloud)."""
+def ist_neighbors(cfg: ISTConfig, xyz0, alive1, held: NeighborTable | None = None) -> NeighborTable:
+    """The ``k = cfg.candidates`` nearest neighbours of every slot of the original cloud
+    ``xyz0 [C, 3]`` among the points ``alive1 [C]`` alive after the edit (host).
+
+    ``held``: a table made earlier for the same cloud, returned as it is when made for the same
+    ``alive1`` (otherwise a new table is made: the edit deletes other points).
+
+    Raises:
+        ValueError: ``held`` made for another cloud or another ``cfg.candidates``.
+    """
     p0 = np.asarray(xyz0, np.float64)
     alive = np.asarray(alive1, bool)
-    return _NEIGHBORS.get(array_key(p0, alive, int(cfg.candidates)), lambda: _neighbor_table(p0, alive, cfg))
+    k = int(cfg.candidates)
+    if held is not None:
+        if held.candidates != k:
+            raise ValueError(f"held: expected a neighbour table of {k} candidates (ISTConfig.candidates), found one "
+                             f"of {held.candidates}; make it with the edit's config")
+        if held.xyz0.shape != p0.shape or not np.array_equal(held.xyz0, p0, equal_nan=True):
+            raise ValueError(f"held: expected the neighbour table of this cloud ({p0.shape[0]} slots), found one made "
+                             f"for another cloud ({held.xyz0.shape[0]} slots"
+                             f"{', other positions' if held.xyz0.shape == p0.shape else ''}); make it from the "
+                             "unedited cloud this edit starts from")
+        if np.array_equal(held.alive, alive):
+            return held
+    p0 = p0.copy()  # kept with the table: the caller may write to its own array later
+    neighbors, valid = _neighbor_table(p0, alive, cfg)
+    alive = alive.copy()
+    for a in (p0, alive, neighbors, valid):
+        a.flags.writeable = False
+    return NeighborTable(xyz0=p0, alive=alive, candidates=k, neighbors=neighbors, valid=valid)
 
 
 def _neighbor_table(p0: np.ndarray, alive: np.ndarray, cfg: ISTConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -179,7 +219,7 @@ def _neighbor_table(p0: np.ndarray, alive: np.ndarray, cfg: ISTConfig) -> tuple[
 
 
 def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence,
-             neighbors: tuple[np.ndarray, np.ndarray] | None = None) -> ISTPlan:
+             neighbors: NeighborTable | None = None) -> ISTPlan:
     """Choose frame pairs and averaging neighbours (host, numpy float64).
 
     Args:
@@ -187,7 +227,7 @@ def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence,
         xyz1, normal1: ``[C, 3]`` edited positions and (unoriented) normals.
         alive1: ``[C]`` bool alive after the edit.
         confidence: ``[C]`` point confidences (weights of the averages).
-        neighbors: :func:`ist_neighbors` of ``xyz0, alive1``, if already computed.
+        neighbors: :func:`ist_neighbors` of ``xyz0`` (made for ``alive1``, or made again here).
     """
     p0, n0 = np.asarray(xyz0, np.float64), np.asarray(normal0, np.float64)
     p1, n1 = np.asarray(xyz1, np.float64), np.asarray(normal1, np.float64)
@@ -195,7 +235,8 @@ def plan_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence,
     conf = np.asarray(confidence, np.float64)
     c, k = alive.size, int(cfg.candidates)
     idx = np.flatnonzero(alive)
-    neighbors, valid = ist_neighbors(cfg, p0, alive) if neighbors is None else neighbors
+    table = ist_neighbors(cfg, p0, alive, neighbors)
+    neighbors, valid = table.neighbors, table.valid
     pair = np.zeros((c, 2), np.int64)
     good = np.zeros(c, bool)
     if idx.size > 2 and k >= 2:
@@ -308,5 +349,5 @@ def compute_ist(cfg: ISTConfig, xyz0, normal0, xyz1, normal1, alive1, confidence
     return ist, sign, {k: int(v) for k, v in counts.items()}
 
 
-__all__ = ["ISTConfig", "ISTPlan", "compute_ist", "frame_transforms", "ist_from_plan", "ist_neighbors",
+__all__ = ["ISTConfig", "ISTPlan", "NeighborTable", "compute_ist", "frame_transforms", "ist_from_plan", "ist_neighbors",
            "nearest_rotation", "plan_ist"]

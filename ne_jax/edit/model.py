@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ne_jax.edit.apply import EditConfig, apply_edit, edited_render_config
+from ne_jax.edit.apply import EditConfig, EditContext, apply_edit_with_report, edit_context, edited_render_config
 from ne_jax.edit.deformations import Edit
 from ne_jax.edit.targets import EditError, EditSource, edit_target
 from ne_jax.train.loop import StartFrom, train
@@ -24,9 +24,17 @@ from ne_jax.train.model import TrainedModel, save_trained
 from ne_jax.train.run import RunConfig
 
 
+def model_edit_context(model: TrainedModel, cfg: EditConfig = EditConfig(), alive=None) -> EditContext:
+    """The :class:`~ne_jax.edit.apply.EditContext` of edits of ``model`` with ``cfg`` (its cloud's
+    IST neighbour table, its tree's carry context), for a caller that edits one model repeatedly
+    and passes it to every :func:`edit_model`. ``alive``: ``[C]`` bool the points alive after the
+    edits (default: the model's alive points)."""
+    return edit_context(cfg, model.state.point_state(model.scene.points), model.scene, model.run.render, alive)
+
+
 def edit_model(model: TrainedModel, edit: EditSource, out_dir: str | Path | None = None, *,
                ist: bool = True, cfg: EditConfig = EditConfig(), scene_dir: str | Path | None = None,
-               label: str | None = None) -> tuple[TrainedModel, dict]:
+               label: str | None = None, context: EditContext | None = None) -> tuple[TrainedModel, dict]:
     """Apply ``edit`` to ``model``'s cloud. Returns ``(edited model, report)``.
 
     ``ist=False`` declares no IST effect (the "without IST" variant; the IST is still computed and
@@ -34,18 +42,19 @@ def edit_model(model: TrainedModel, edit: EditSource, out_dir: str | Path | None
     scene's ground truth, recorded for ``eval`` and ``finetune`` (for a benchmark edit by name,
     :func:`ne_jax.benchmark.edits.resolve_edit` gives the edit and its folder). ``label`` names the
     edit in the report (default: the edit's name or the file). With ``out_dir`` the edited model is
-    written there as a run directory (atomically).
+    written there as a run directory (atomically). ``context``: :func:`model_edit_context` of
+    ``model`` and ``cfg``, held by a caller that edits the model repeatedly (made on the spot when
+    ``None``).
 
     The edit is read in the capture's coordinates (``model.frame``: a file's positions, a named
     benchmark edit's motion), as a user wrote it; for a NeRF Synthetic scene they are the model's.
     """
     label = label if label is not None else edit.name if isinstance(edit, Edit) else str(edit)
-    report: dict = {}
     before = model.state.point_state(model.scene.points)
-    points = apply_edit(before, in_model_frame(before, edit, model.frame), cfg, report=report)
+    points, report = apply_edit_with_report(before, in_model_frame(before, edit, model.frame), cfg, context)
     run = model.run.replace(render=edited_render_config(model.run.render, ist))
     state = model.state.with_points(points, np.zeros(points.capacity, bool))
-    edited = TrainedModel(run=run, state=state, scene=cfg.scene(model.scene, points, run.render),
+    edited = TrainedModel(run=run, state=state, scene=cfg.scene(model.scene, points, run.render, context),
                           scene_dir=None if scene_dir is None else Path(scene_dir), meta=dict(model.meta),
                           frame=model.frame)
     report = {"edit": label, "ist": ist, **report}
@@ -104,4 +113,4 @@ def finetune(model: TrainedModel, run_dir: str | Path, epochs: int = 1, *, scene
     return train(run, scene_dir, run_dir, resume=resume, progress=progress, log=log, start=start)
 
 
-__all__ = ["edit_model", "finetune", "finetune_config", "in_model_frame"]
+__all__ = ["edit_model", "finetune", "finetune_config", "in_model_frame", "model_edit_context"]

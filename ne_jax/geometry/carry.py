@@ -35,10 +35,15 @@ sample and neighbour is the unedited one up to rounding (tested: ``tests/geometr
 ``oriented=False`` and ``recompute_candidates=True`` are analysis switches for the equivariance
 study (``experiments/equivariance.py``): world boxes around the moved members for every subtree
 (the partition kept, the boxes re-fitted), and candidate sets re-chosen around the moved boxes.
+
+What every carry of one built tree shares (the validity limit of its rest cloud, which the local
+rebuilds use) is a :class:`CarryContext`: made once by :func:`carry_context`, held by the caller
+and passed back to every :func:`carry_tree` of the same tree (computed on the spot when not given).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -53,9 +58,60 @@ from ne_jax.geometry.kdtree import (
     _spacing_and_limit,
     _split_levels,
 )
-from ne_jax.memo import LastResults, array_key
 
-_LIMITS = LastResults(2)  # the validity limit of a rest cloud: the same for every edit of one model
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CarryContext:
+    """What every carry of one built tree shares, computed once from its rest cloud (host side) by
+    :func:`carry_context` and passed back to :func:`carry_tree`.
+
+    Attributes:
+        held: ``[n, 3]`` float64 rest positions of the tree's points, in slot order (read-only): the
+            cloud the context was made for, checked on every use.
+        cfg: the tree config it was made with.
+        limit: the validity threshold ``lim`` of ``held`` (the "too spread out" rule,
+            :mod:`~ne_jax.geometry.kdtree`) that the boxes of local rebuilds are held to.
+    """
+
+    held: np.ndarray
+    cfg: KDTreeConfig
+    limit: float
+
+
+def held_points(tree: KDTree) -> np.ndarray:
+    """``[C]`` bool: the slots ``tree`` holds (for a tree from ``build_tree(xyz, alive)``, ``alive``)."""
+    held = np.zeros(tree.capacity + 1, bool)
+    held[np.asarray(tree.perm)] = True
+    return held[: tree.capacity]
+
+
+def _rest_limit(held_xyz: np.ndarray, cfg: KDTreeConfig) -> float:
+    return _spacing_and_limit(held_xyz, cKDTree(held_xyz), cfg)[1]
+
+
+def carry_context(rest_xyz, held, cfg: KDTreeConfig) -> CarryContext:
+    """The :class:`CarryContext` of a tree built with ``cfg`` on ``rest_xyz [C, 3]`` that holds the
+    slots ``held [C]`` bool (:func:`held_points`; for ``build_tree(rest_xyz, alive)``: ``alive``)."""
+    rest = np.asarray(rest_xyz, np.float64)
+    held = np.asarray(held, bool)
+    if rest.ndim != 2 or rest.shape[1] != 3 or held.shape != rest.shape[:1]:
+        raise ValueError(f"carry_context: expected rest_xyz [C, 3] and held [C], found shapes {list(rest.shape)} "
+                         f"and {list(held.shape)}")
+    pts = rest[np.flatnonzero(held)]
+    pts.flags.writeable = False
+    return CarryContext(held=pts, cfg=cfg, limit=_rest_limit(pts, cfg))
+
+
+def _check_context(context: CarryContext, held_xyz: np.ndarray, cfg: KDTreeConfig) -> None:
+    if context.cfg != cfg:
+        raise ValueError("context: expected a CarryContext made with this tree's config, found one made with another "
+                         "(make it with carry_context(rest_xyz, held, cfg) of this tree's config)")
+    if context.held.shape != held_xyz.shape or not np.array_equal(context.held, held_xyz, equal_nan=True):
+        what = (f"{context.held.shape[0]} points, the tree holds {held_xyz.shape[0]}"
+                if context.held.shape != held_xyz.shape else "the same number of points at other positions")
+        raise ValueError(f"context: expected the CarryContext of this tree's rest cloud, found one made for another "
+                         f"cloud ({what}); make it with carry_context(rest_xyz, held_points(tree), cfg) of the "
+                         "tree's rest positions")
 
 
 def _similarity_fit(x: np.ndarray, y: np.ndarray, w: np.ndarray):
@@ -99,9 +155,18 @@ def _level_boxes(pos: np.ndarray, ok: np.ndarray, depth: int, first: int):
 
 def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_factor: float = 2.0,
                oriented: bool = True, recompute_candidates: bool = False,
-               report: dict | None = None) -> KDTree:
+               context: CarryContext | None = None) -> KDTree:
     """``tree`` (built on ``rest_xyz``) carried to the edited positions ``xyz`` (host side; see the
-    module docstring).
+    module docstring): :func:`carry_tree_with_report` without its report."""
+    return carry_tree_with_report(tree, rest_xyz, xyz, alive, cfg, tear_factor=tear_factor, oriented=oriented,
+                                  recompute_candidates=recompute_candidates, context=context)[0]
+
+
+def carry_tree_with_report(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_factor: float = 2.0,
+                           oriented: bool = True, recompute_candidates: bool = False,
+                           context: CarryContext | None = None) -> tuple[KDTree, dict]:
+    """``tree`` (built on ``rest_xyz``) carried to the edited positions ``xyz`` (host side; see the
+    module docstring), and what the carry did: ``(tree, report)``.
 
     Args:
         tree: built by :func:`~ne_jax.geometry.kdtree.build_tree` on ``rest_xyz`` (without frames).
@@ -112,11 +177,15 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
         tear_factor: a subtree whose similarity fit leaves a member farther than this many point
             spacings from its edited position is torn: rebuilt locally, with new candidate sets.
         oriented, recompute_candidates: analysis switches (module docstring).
-        report: optional dict receiving ``subtrees``, ``torn``, ``max_residual`` (in spacings),
-            ``scale`` (the length unit's factor) and ``emptied`` (nodes that lost all their points).
+        context: :func:`carry_context` of ``tree`` and ``rest_xyz`` (made on the spot when ``None``).
+
+    Returns:
+        The carried tree and a dict: ``subtrees``, ``torn``, ``max_residual`` (in spacings),
+        ``scale`` (the length unit's factor) and ``emptied`` (nodes that lost all their points).
 
     Raises:
-        ValueError: shapes, non-finite edited positions, or alive points the tree does not hold.
+        ValueError: shapes, non-finite edited positions, alive points the tree does not hold, or a
+            ``context`` made for another rest cloud or config.
     """
     if tree.has_frames:
         raise ValueError("tree: expected a tree built on rest_xyz (no frames), found a carried tree; "
@@ -142,6 +211,9 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     if bad.any():
         raise ValueError(f"xyz: expected finite positions for alive points, found {int(bad.sum())} with NaN/inf "
                          f"(first at index {int(np.flatnonzero(bad)[0])})")
+    rest_alive = np.flatnonzero(in_tree[:cap])
+    if context is not None:
+        _check_context(context, rest[rest_alive], cfg)
 
     f = depth - tree.num_render_levels - 1  # the frame level = the growing level
     nf, span = 2**f, 2 ** (depth - f)
@@ -204,9 +276,7 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
     sub_depth = depth - f
     resplit = np.flatnonzero(torn & oriented)
     if resplit.size:  # the released code's "too spread out" rule for the boxes made here
-        rest_alive = np.flatnonzero(in_tree[:cap])
-        lim = unit * _LIMITS.get(array_key(rest[rest_alive], cfg), lambda: _spacing_and_limit(
-            rest[rest_alive], cKDTree(rest[rest_alive]), cfg)[1])
+        lim = unit * (context.limit if context is not None else _rest_limit(rest[rest_alive], cfg))
     for i in resplit:
         ids = perm[i * span : (i + 1) * span]
         ids = ids[ids < cap]
@@ -267,9 +337,8 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
         cand_new[redo] = np.concatenate([near, np.full((near.shape[0], kc - k), cap)], axis=1)
 
     valid &= count_all > 0
-    if report is not None:
-        report.update(subtrees=int(nf), torn=int(torn.sum()), max_residual=float(residual.max() / spacing_world),
-                      scale=unit, emptied=int(((count_all == 0) & (count_built > 0)).sum()))
+    report = dict(subtrees=int(nf), torn=int(torn.sum()), max_residual=float(residual.max() / spacing_world),
+                  scale=unit, emptied=int(((count_all == 0) & (count_built > 0)).sum()))
     dtype = np.asarray(tree.lo).dtype
     frames = {}
     if framed.any():
@@ -283,7 +352,7 @@ def carry_tree(tree: KDTree, rest_xyz, xyz, alive, cfg: KDTreeConfig, *, tear_fa
                         split_axis=jnp.asarray(split_axis.astype(np.int32)),
                         split_value=jnp.asarray(split_value.astype(dtype)),
                         candidates=jnp.asarray(cand_new.astype(np.int32)),
-                        spacing=jnp.asarray(spacing_world, dtype), **frames)
+                        spacing=jnp.asarray(spacing_world, dtype), **frames), report
 
 
-__all__ = ["carry_tree"]
+__all__ = ["CarryContext", "carry_context", "carry_tree", "carry_tree_with_report", "held_points"]

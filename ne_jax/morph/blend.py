@@ -29,7 +29,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from ne_jax.edit.apply import EditConfig, apply_edit
+from ne_jax.edit.apply import EditConfig, EditContext, apply_edit_with_report, edit_context
 from ne_jax.geometry.points import PointState
 from ne_jax.morph.matching import equal_size, kd_match
 from ne_jax.numerics import safe_normalize
@@ -167,26 +167,52 @@ def pair_models(a: TrainedModel, b: TrainedModel, seed: int = 0) -> MorphPair:
     return MorphPair(a=a, b=b, points_a=pa, points_b=pb, slots_a=slots_a, slots_b=slots_b[perm], render=render)
 
 
-def _moved(points: PointState, slots: np.ndarray, cloud: np.ndarray, cfg: EditConfig, report: dict) -> PointState:
-    """``points`` edited: ``slots`` moved to ``cloud``, every other alive point deleted (NaN rows)."""
+def _only(points: PointState, slots: np.ndarray) -> np.ndarray:
+    """``[C]`` bool: ``slots`` of ``points``, the points alive after :func:`_moved`."""
+    alive = np.zeros(points.capacity, bool)
+    alive[slots] = True
+    return alive & np.asarray(points.alive)
+
+
+def _moved(points: PointState, slots: np.ndarray, cloud: np.ndarray, cfg: EditConfig,
+           context: EditContext | None) -> tuple[PointState, dict]:
+    """``points`` edited: ``slots`` moved to ``cloud``, every other alive point deleted (NaN rows);
+    ``(points, report)`` (:func:`~ne_jax.edit.apply.apply_edit_with_report`)."""
     rows = np.full((points.capacity, 3), np.nan)
     rows[slots] = cloud
-    return apply_edit(points, rows, cfg, report=report)
+    return apply_edit_with_report(points, rows, cfg, context)
 
 
-def morph_scene(pair: MorphPair, cloud, cfg: EditConfig = EditConfig(), report: dict | None = None) -> PointScene:
+def morph_contexts(pair: MorphPair, cfg: EditConfig = EditConfig()) -> tuple[EditContext, EditContext]:
+    """A's and B's :class:`~ne_jax.edit.apply.EditContext` for every :func:`morph_scene` of ``pair``
+    with ``cfg`` (each cloud's IST neighbour table among its matched points): made once for a
+    whole morph."""
+    return (edit_context(cfg, pair.points_a, alive=_only(pair.points_a, pair.slots_a)),
+            edit_context(cfg, pair.points_b, alive=_only(pair.points_b, pair.slots_b)))
+
+
+def morph_scene(pair: MorphPair, cloud, cfg: EditConfig = EditConfig(),
+                contexts: tuple[EditContext, EditContext] | None = None) -> PointScene:
+    """The scene of intermediate ``cloud [N, 3]``: :func:`morph_scene_with_report` without its report."""
+    return morph_scene_with_report(pair, cloud, cfg, contexts)[0]
+
+
+def morph_scene_with_report(pair: MorphPair, cloud, cfg: EditConfig = EditConfig(),
+                            contexts: tuple[EditContext, EditContext] | None = None) -> tuple[PointScene, dict]:
     """The scene of intermediate ``cloud [N, 3]`` (row ``i``: matched point ``i``) for
     :attr:`MorphPair.render`: both models edited onto the cloud (normals, ISTs), their per-point
-    arrays side by side in A's slots, the K-D tree built. ``report`` receives each edit's counts."""
+    arrays side by side in A's slots, the K-D tree built. ``contexts``: :func:`morph_contexts` of
+    ``pair`` and ``cfg``, held for a whole morph (made on the spot when ``None``).
+
+    Returns ``(scene, report)``; ``report``: ``{"a": ..., "b": ...}``, each edit's report
+    (:func:`~ne_jax.edit.apply.apply_edit_with_report`)."""
     cloud = np.asarray(cloud, np.float64)
     if cloud.shape != (pair.slots_a.size, 3):
         raise ValueError(f"morph_scene: expected a cloud of shape ({pair.slots_a.size}, 3) (the matched points), "
                          f"found {cloud.shape}")
-    rep_a, rep_b = {}, {}
-    ea = _moved(pair.points_a, pair.slots_a, cloud, cfg, rep_a)
-    eb = _moved(pair.points_b, pair.slots_b, cloud, cfg, rep_b)
-    if report is not None:
-        report.update(a=rep_a, b=rep_b)
+    ctx_a, ctx_b = (None, None) if contexts is None else contexts
+    ea, rep_a = _moved(pair.points_a, pair.slots_a, cloud, cfg, ctx_a)
+    eb, rep_b = _moved(pair.points_b, pair.slots_b, cloud, cfg, ctx_b)
     c = pair.points_a.capacity
     dtype = ea.feature.dtype
 
@@ -201,7 +227,8 @@ def morph_scene(pair: MorphPair, cloud, cfg: EditConfig = EditConfig(), report: 
         normal=jnp.stack([ea.normal, in_a_slots(eb.normal, 0.0)], axis=1),
         ist=jnp.stack([ea.ist, in_a_slots(eb.ist, jnp.eye(3, dtype=dtype))], axis=1),
     )
-    return PointScene.build(points, pair.render)
+    return PointScene.build(points, pair.render), {"a": rep_a, "b": rep_b}
 
 
-__all__ = ["BlendedEffects", "BlendedShading", "MorphPair", "blended_render_config", "morph_scene", "pair_models"]
+__all__ = ["BlendedEffects", "BlendedShading", "MorphPair", "blended_render_config", "morph_contexts", "morph_scene",
+           "morph_scene_with_report", "pair_models"]

@@ -29,7 +29,7 @@ from ne_jax.data.png import write_image
 from ne_jax.data.rays import Camera
 from ne_jax.edit.apply import EditConfig
 from ne_jax.eval.views import save_images, write_video
-from ne_jax.morph.blend import MorphPair, morph_scene, pair_models
+from ne_jax.morph.blend import MorphPair, morph_contexts, morph_scene_with_report, pair_models
 from ne_jax.morph.path import linear_path, morph_ratios, path_from_clouds
 from ne_jax.render.renderer import render_image
 from ne_jax.train.model import TrainedModel
@@ -61,11 +61,11 @@ def render_morph(pair: MorphPair, path: Sequence[np.ndarray], camera: Camera | S
         raise ValueError(f"render_morph: expected one camera (or {len(path)}) and {len(path)} ratios, found "
                          f"{len(cameras)} cameras and {len(ratios)} ratios")
     bg = parse_background(background)
+    contexts = morph_contexts(pair, edit)  # every frame edits the same two clouds onto the same matched points
     frames, reports = [], []
     for cloud, r, cam in tqdm(list(zip(path, ratios, cameras)), desc="morph", unit="frame", disable=not progress):
         t0 = time.perf_counter()
-        edits: dict = {}
-        scene = morph_scene(pair, cloud, edit, report=edits)
+        scene, edits = morph_scene_with_report(pair, cloud, edit, contexts)
         out = render_image(pair.render, pair.params(r), scene, cam, bg, near, far, progress=False)
         rgb, lost = jax.device_get((out.rgb, out.lost.count.sum()))
         frames.append(np.asarray(rgb, np.float32))

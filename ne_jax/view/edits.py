@@ -307,12 +307,13 @@ def write_edit_ply(path: str | os.PathLike, edit: ViewEdit, frame=None) -> int:
 
 
 def save_view_edit(model, edit: ViewEdit, out_dir: str | os.PathLike, *, ist: bool = True, cfg=None,
-                   label: str = "viewer") -> tuple[object, dict]:
+                   label: str = "viewer", context=None) -> tuple[object, dict]:
     """Apply ``edit`` to ``model`` (a :class:`~ne_jax.train.model.TrainedModel`) and write the edited
     run directory to ``out_dir`` with the edit's indexed PLY inside it (:data:`EDIT_PLY`), all in one
     atomic step: ``out_dir`` appears complete or not at all (an existing one is replaced only on
     success). The edited model is made from the PLY just written, as ``ne-jax edit RUN --edit
-    out_dir/edit.ply`` makes it. Returns ``(edited model, report)``."""
+    out_dir/edit.ply`` makes it. ``context``: :func:`~ne_jax.edit.model.model_edit_context` of
+    ``model`` and ``cfg``, if held. Returns ``(edited model, report)``."""
     from ne_jax.edit.apply import EditConfig
     from ne_jax.edit.model import edit_model
 
@@ -325,7 +326,7 @@ def save_view_edit(model, edit: ViewEdit, out_dir: str | os.PathLike, *, ist: bo
         run_tmp = tmp / "run"
         ply_tmp = tmp / EDIT_PLY
         write_edit_ply(ply_tmp, edit, model.frame)
-        edited, report = edit_model(model, ply_tmp, run_tmp, ist=ist, cfg=cfg, label=label)
+        edited, report = edit_model(model, ply_tmp, run_tmp, ist=ist, cfg=cfg, label=label, context=context)
         os.replace(ply_tmp, run_tmp / EDIT_PLY)
         # the run directory becomes out_dir itself: move its content up one level
         for child in run_tmp.iterdir():

@@ -96,6 +96,7 @@ class Viewer:
         self._history: list[E.ViewEdit] = []
         self.selection = np.zeros(0, np.int64)
         self._edited = model  # what is rendered: the model, or the model edited by self.edit
+        self._context = None  # what every edit of the model shares (made by the first edit: _edit_context)
         self._scene_version = 0
         self._clients: dict[int, _ClientState] = {}
         self._stopped = False
@@ -211,7 +212,8 @@ class Viewer:
     def save(self, out_dir: str | Path) -> dict:
         """Write the edit as ``out_dir`` (an edited run directory, with ``edit.ply`` inside), atomically."""
         with self._lock:
-            _, report = E.save_view_edit(self.model, self.edit, out_dir, ist=self._gui_ist.value)
+            _, report = E.save_view_edit(self.model, self.edit, out_dir, ist=self._gui_ist.value,
+                                         context=self._edit_context())
         return report
 
     # --------------------------------------------------------------- internals
@@ -226,6 +228,19 @@ class Viewer:
         rgb = np.asarray(point_colors(self.model.run.render.shading, self.model.params, self._points))
         return np.clip(np.round(np.nan_to_num(rgb) * 255), 0, 255).astype(np.uint8)
 
+    def _edit_context(self):
+        """The :class:`~ne_jax.edit.apply.EditContext` of :attr:`model` for the current edit's
+        deletions: made by the first edit and kept for the next (its neighbour table made again
+        when the deletions change)."""
+        from ne_jax.edit.apply import EditConfig
+        from ne_jax.edit.model import model_edit_context
+
+        alive = self.edit.remaining
+        held = self._context
+        self._context = model_edit_context(self.model, alive=alive) if held is None else \
+            held.for_alive(EditConfig(), alive)
+        return self._context
+
     def _push(self, new: E.ViewEdit) -> None:
         self._history.append(self.edit)
         self.edit = new
@@ -237,7 +252,8 @@ class Viewer:
 
         t0 = time.perf_counter()
         if self.edit.changed(self._points):
-            self._edited, _ = edit_model(self.model, self.edit.rows(), ist=self._gui_ist.value, label="viewer")
+            self._edited, _ = edit_model(self.model, self.edit.rows(), ist=self._gui_ist.value, label="viewer",
+                                         context=self._edit_context())
         else:
             self._edited = self.model
         self._edit_seconds = time.perf_counter() - t0
@@ -296,7 +312,8 @@ class Viewer:
             with self._render_lock:
                 render_frame(self.model, camera)
             self._set_status("compiling: the edit path (the first edit waits for it)")
-            edited, _ = edit_model(self.model, self.edit.rows(), ist=True, label="warm-up")
+            edited, _ = edit_model(self.model, self.edit.rows(), ist=True, label="warm-up",
+                                   context=self._edit_context())
             with self._render_lock:
                 render_frame(edited, camera)
             self._set_status("ready")

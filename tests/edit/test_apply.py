@@ -1,16 +1,21 @@
 """apply_edit: edits from functions, .npy and .ply files and sequences; bad edits get named errors;
-model parameters untouched; normals oriented; ISTs compose."""
+model parameters untouched; normals oriented; ISTs compose; a held edit context edits as one made on
+the spot, and another cloud's is refused."""
 
 import jax
 import numpy as np
 import pytest
 
 from ne_jax.data.ply import write_ply
-from ne_jax.edit.apply import EditConfig, apply_edit
-from ne_jax.edit.deformations import Edit, delete_part, halfspace, rotation_matrix
+from ne_jax.edit.apply import EditConfig, apply_edit, apply_edit_with_report, edit_context
+from ne_jax.edit.deformations import Edit, cut_points, delete_part, halfspace, rotation_matrix
+from ne_jax.edit.ist import ISTConfig
 from ne_jax.edit.targets import EditError
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
+from ne_jax.render.renderer import PointScene
+
+from tests.mini_presets import tiny_render
 
 N, CAP = 600, 640
 R1 = np.asarray(rotation_matrix([1.0, 2.0, 3.0], 0.7), np.float64)
@@ -31,8 +36,7 @@ def rotation_edit(rot, name="rot"):
 
 
 def test_function_edit_moves_points_and_keeps_parameters(points):
-    report = {}
-    edited = apply_edit(points, rotation_edit(R1), report=report)
+    edited, report = apply_edit_with_report(points, rotation_edit(R1))
     alive = np.asarray(points.alive)
     np.testing.assert_allclose(np.asarray(edited.xyz)[alive], np.asarray(points.xyz)[alive] @ R1.T, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(edited.feature), np.asarray(points.feature))
@@ -55,8 +59,7 @@ def test_kept_normals_switch_leaves_every_normal_as_it_was(points):
 
 
 def test_deletion_flips_alive_only(points):
-    report = {}
-    edited = apply_edit(points, delete_part("cap", halfspace([0, 0, 1], 0.5)), report=report)
+    edited, report = apply_edit_with_report(points, delete_part("cap", halfspace([0, 0, 1], 0.5)))
     z = np.asarray(points.xyz)[:, 2]
     expect = np.asarray(points.alive) & ~(z > 0.5)
     np.testing.assert_array_equal(np.asarray(edited.alive), expect)
@@ -124,8 +127,7 @@ def test_ply_with_index_moves_listed_points_and_deletes_the_rest(points, tmp_pat
     keep = np.arange(50, N)[::-1]  # any order
     xyz = np.asarray(points.xyz)[keep] @ R1.T
     _ply(tmp_path / "e.ply", xyz, keep)
-    report = {}
-    edited = apply_edit(points, tmp_path / "e.ply", report=report)
+    edited, report = apply_edit_with_report(points, tmp_path / "e.ply")
     assert report["deleted"] == 50 and not np.asarray(edited.alive)[:50].any()
     np.testing.assert_allclose(np.asarray(edited.xyz)[keep], xyz, atol=1e-6)
 
@@ -159,3 +161,45 @@ def test_sequences_and_repeated_edits_compose_the_ist(points):
     # a sequence is one edit from the original: its IST is (R2 R1)^T; two edits compose theirs
     np.testing.assert_allclose(np.asarray(once.ist)[alive], np.broadcast_to(both.T, (N, 3, 3)), atol=1e-5)
     np.testing.assert_allclose(np.asarray(twice.ist)[alive], np.broadcast_to(both.T, (N, 3, 3)), atol=2e-5)
+
+
+def _same(a, b):
+    jax.tree_util.tree_map(np.testing.assert_array_equal, a, b)
+
+
+def _without_seconds(report):
+    return {k: v for k, v in report.items() if k != "seconds"}
+
+
+def test_a_held_context_edits_as_one_made_on_the_spot(points):
+    render = tiny_render()
+    scene = PointScene.build(points, render)
+    cfg = EditConfig()
+    context = edit_context(cfg, points, scene, render)
+    assert context.carry is not None and context.neighbors.alive.sum() == N
+    cut = Edit("cut", "cut", lambda p: cut_points(p, (0.05, 0.0, 0.0), (1.0, 0.0, 0.0), 0.5))
+    for edit in (cut, delete_part("cap", halfspace([0, 0, 1], 0.5))):  # the second deletes: its own table
+        spot, spot_report = apply_edit_with_report(points, edit)
+        held, held_report = apply_edit_with_report(points, edit, cfg, context)
+        _same(held, spot)
+        assert _without_seconds(held_report) == _without_seconds(spot_report)
+        _same(cfg.scene(scene, held, render, context), cfg.scene(scene, spot, render))
+    # an edited scene (its tree carried from the rest cloud) edited again with its own context
+    once = cfg.scene(scene, apply_edit(points, cut), render)
+    again = edit_context(cfg, once.points, once, render)
+    twice = apply_edit(once.points, rotation_edit(R1), cfg, again)
+    _same(cfg.scene(once, twice, render, again), cfg.scene(once, twice, render))
+
+
+def test_a_context_of_another_cloud_is_refused(points):
+    other = points.replace(xyz=1.01 * points.xyz)
+    with pytest.raises(ValueError, match="another cloud"):
+        apply_edit(points, rotation_edit(R1), context=edit_context(EditConfig(), other))
+    with pytest.raises(ValueError, match="8 candidates.*found one of 4"):
+        apply_edit(points, rotation_edit(R1), context=edit_context(EditConfig(ist=ISTConfig(candidates=4)), points))
+    render = tiny_render()
+    scene = PointScene.build(points, render)
+    edited = apply_edit(points, rotation_edit(R1))
+    wrong = edit_context(EditConfig(), other, PointScene.build(other, render), render)
+    with pytest.raises(ValueError, match="another cloud"):
+        EditConfig().scene(scene, edited, render, wrong)

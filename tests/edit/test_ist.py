@@ -1,6 +1,7 @@
 """IST: exact on rigid motions and on linear maps that keep the normal direction, equal to a float64
 numpy reference of the frame map's polar factor elsewhere, finite and orthogonal on degenerate
-frames, differentiable.
+frames, differentiable; a held neighbour table is handed back for the same deletions, another
+cloud's is refused.
 
 Every cloud is padded with dead slots to :data:`CAP` (dead slots take no part in the IST and are
 cut off again): :func:`ist_from_plan` compiles once per configuration for the file."""
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from ne_jax.edit.deformations import bend_points, rotation_matrix
-from ne_jax.edit.ist import ISTConfig, compute_ist, ist_from_plan, nearest_rotation, plan_ist
+from ne_jax.edit.ist import ISTConfig, compute_ist, ist_from_plan, ist_neighbors, nearest_rotation, plan_ist
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
 
 from .reference import frame_map_polar
@@ -203,3 +204,29 @@ def test_gradients_through_the_ist_are_finite(angle):
     h = 1e-2
     fd = (float(f(angle + h)[0]) - float(f(angle - h)[0])) / (2 * h)
     assert abs(float(g) - fd) < 0.02 * max(1.0, abs(fd))
+
+
+def test_ist_neighbors_hands_back_the_held_table_for_the_same_deletions_and_refuses_another_clouds():
+    x = sphere(300, seed=3)
+    alive = np.ones(len(x), bool)
+    cfg = ISTConfig()
+    held = ist_neighbors(cfg, x, alive)
+    assert ist_neighbors(cfg, x.astype(np.float64), alive, held) is held
+    assert not (held.neighbors.flags.writeable or held.valid.flags.writeable or held.xyz0.flags.writeable)
+    fewer = alive.copy()
+    fewer[:40] = False  # an edit that deletes: a table of its own, as made on the spot
+    made = ist_neighbors(cfg, x, fewer, held)
+    spot = ist_neighbors(cfg, x, fewer)
+    assert made is not held
+    np.testing.assert_array_equal(made.neighbors, spot.neighbors)
+    np.testing.assert_array_equal(made.valid, spot.valid)
+    with pytest.raises(ValueError, match="another cloud.*other positions"):
+        ist_neighbors(cfg, 1.01 * x, alive, held)
+    with pytest.raises(ValueError, match="another cloud"):
+        ist_neighbors(cfg, x[:-1], alive[:-1], held)
+    with pytest.raises(ValueError, match="8 candidates"):
+        ist_neighbors(cfg, x, alive, ist_neighbors(ISTConfig(candidates=4), x, alive))
+    # plan_ist takes the table and chooses what it chooses without it
+    n = estimate_normals(UNORIENTED, x)
+    args = (x, n, x @ R.T, n @ R.T, alive, np.full(len(x), 0.5))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, plan_ist(cfg, *args, neighbors=held), plan_ist(cfg, *args))

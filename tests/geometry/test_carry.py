@@ -2,7 +2,7 @@
 tree cut the original rays (hard rays included); deletions shrink and empty nodes; smooth
 deformations keep every point within the fit's residual of its boxes and every box inside its
 parent; torn subtrees are rebuilt locally; bad input is named; gradients stay finite; repeated calls
-do not recompile."""
+do not recompile; a held carry context carries as one made on the spot, and another cloud's is refused."""
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +11,7 @@ import pytest
 
 from ne_jax.edit.deformations import bend_points, cut_points, rigid_motion
 from ne_jax.geometry import build_tree, intersect
-from ne_jax.geometry.carry import carry_tree
+from ne_jax.geometry.carry import carry_context, carry_tree, carry_tree_with_report, held_points
 
 from tests.mini_presets import tiny_tree
 
@@ -53,8 +53,7 @@ def test_rigid_motion_cuts_moved_rays_where_the_original_tree_cut(cloud, angle):
     x, alive, tree = cloud
     m = rigid_motion((1.0, 2.0, -0.5), angle, pivot=(0.1, 0.0, 0.2), translation=(0.3, -0.2, 0.05))
     y = (x @ m[:3, :3].T + m[:3, 3]).astype(np.float32)
-    report = {}
-    carried = carry_tree(tree, x, y, alive, CFG, report=report)
+    carried, report = carry_tree_with_report(tree, x, y, alive, CFG)
     assert carried.has_frames and report["torn"] == 0 and report["max_residual"] < 1e-3
     o, d = _aimed_rays(x)
     before = intersect(tree, make_rays(o, d), CFG)
@@ -121,8 +120,7 @@ def assert_points_inside_their_boxes(tree, y, alive, from_level, slack=1e-5):
 def test_smooth_deformation_keeps_points_in_boxes_and_boxes_nested(cloud):
     x, alive, tree = cloud
     y = np.asarray(bend_points(jnp.asarray(x), (0, 0, -0.6), (0, 0, 1), (1, 0, 0), np.deg2rad(30), 2.0))
-    report = {}
-    carried = carry_tree(tree, x, y, alive, CFG, report=report)
+    carried, report = carry_tree_with_report(tree, x, y, alive, CFG)
     assert report["torn"] == 0 and 0 < report["max_residual"] < 2.0
     # the boxes are not grown: a point stays within the fit's residual of them
     assert_points_inside_their_boxes(carried, y, alive, carried.frame_level,
@@ -142,8 +140,7 @@ def test_smooth_deformation_keeps_points_in_boxes_and_boxes_nested(cloud):
 def test_deletions_shrink_and_empty_nodes(cloud):
     x, alive, tree = cloud
     keep = alive & (x[:, 0] < 0.3)
-    report = {}
-    carried = carry_tree(tree, x, x, keep, CFG, report=report)
+    carried, report = carry_tree_with_report(tree, x, x, keep, CFG)
     assert report["emptied"] > 0
     cnt_new, cnt_old = np.asarray(carried.count), np.asarray(tree.count)
     assert cnt_new[0] == keep.sum() and np.all(cnt_new <= cnt_old)
@@ -168,8 +165,7 @@ def test_deletions_shrink_and_empty_nodes(cloud):
 def test_torn_subtrees_are_rebuilt_locally(cloud):
     x, alive, tree = cloud
     y = np.asarray(cut_points(jnp.asarray(x), (0.05, 0, 0), (1, 0, 0), 0.5))
-    report = {}
-    carried = carry_tree(tree, x, y, alive, CFG, report=report)
+    carried, report = carry_tree_with_report(tree, x, y, alive, CFG)
     assert report["torn"] > 0
     # torn subtrees hold their points; the others within the tear threshold (2 spacings)
     assert_points_inside_their_boxes(carried, y, alive, carried.frame_level, slack=2 * float(carried.spacing) + 1e-5)
@@ -226,3 +222,22 @@ def test_uniform_scaling_scales_segments_and_the_length_unit(cloud):
     np.testing.assert_array_equal(np.asarray(before.node), np.asarray(after.node))
     np.testing.assert_allclose(s * np.asarray(before.t_lo), np.asarray(after.t_lo), atol=3e-5)
     np.testing.assert_allclose(s * np.asarray(before.t_hi), np.asarray(after.t_hi), atol=3e-5)
+
+
+def test_a_held_context_carries_as_one_made_on_the_spot_and_another_clouds_is_refused(cloud):
+    x, alive, tree = cloud
+    context = carry_context(x, held_points(tree), CFG)
+    np.testing.assert_array_equal(held_points(tree), alive)
+    y = np.asarray(cut_points(jnp.asarray(x), (0.05, 0, 0), (1, 0, 0), 0.5))  # torn: the limit is used
+    spot, spot_report = carry_tree_with_report(tree, x, y, alive, CFG)
+    held, held_report = carry_tree_with_report(tree, x, y, alive, CFG, context=context)
+    assert held_report == spot_report and spot_report["torn"] > 0
+    jax.tree_util.tree_map(np.testing.assert_array_equal, held, spot)
+    with pytest.raises(ValueError, match="another cloud.*other positions"):
+        carry_tree(tree, x, y, alive, CFG, context=carry_context(1.01 * x, alive, CFG))
+    fewer = alive.copy()
+    fewer[:10] = False
+    with pytest.raises(ValueError, match=f"another cloud.*{len(x) - 10} points, the tree holds {len(x)}"):
+        carry_tree(tree, x, y, alive, CFG, context=carry_context(x, fewer, CFG))
+    with pytest.raises(ValueError, match="made with another"):
+        carry_tree(tree, x, y, alive, CFG, context=carry_context(x, alive, CFG.replace(margin_factor=2.0)))

@@ -1,6 +1,7 @@
 """Blended rendering of two models through one intermediate cloud: the ends are each model's own
-render, the blend is the ratio mix of the two colour models, a morph compiles once, and a whole
-morph writes its frames, video and report (library and command line)."""
+render, the blend is the ratio mix of the two colour models, a morph compiles once, held edit
+contexts give the scene made without them, and a whole morph writes its frames, video and report
+(library and command line)."""
 
 from __future__ import annotations
 
@@ -16,14 +17,17 @@ from ne_jax.benchmark.generate import generate_scene
 from ne_jax.cli import main
 from ne_jax.data.cameras import orbit_cameras
 from ne_jax.data.rays import Camera
+from ne_jax.edit.apply import EditConfig
 from ne_jax.geometry.points import PointState
 from ne_jax.morph import (
     BlendedShading,
     MorphSettings,
     blended_render_config,
     linear_path,
+    morph_contexts,
     morph_models,
     morph_scene,
+    morph_scene_with_report,
     pair_models,
     render_morph,
 )
@@ -145,6 +149,25 @@ def test_unequal_clouds_keep_the_most_confident_points_of_the_larger(models):
     pair = pair_models(a, big)
     assert pair.slots_a.size == N
     np.testing.assert_array_equal(np.sort(pair.slots_b), np.arange(50, N + 50))  # the 50 least confident left out
+
+
+def test_held_edit_contexts_give_the_scene_made_without_them(models):
+    a, _ = models
+    big = _model(_cube(N + 50, 3), 20)  # the larger cloud: its 50 unmatched points are deleted by every frame
+    pair = pair_models(a, big)
+    contexts = morph_contexts(pair)
+    cloud = 0.5 * (pair.cloud_a + pair.cloud_b)
+    held, held_report = morph_scene_with_report(pair, cloud, contexts=contexts)
+    spot, spot_report = morph_scene_with_report(pair, cloud)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, held, spot)
+    def counts(report):
+        return {m: {k: v for k, v in r.items() if k != "seconds"} for m, r in report.items()}
+
+    assert counts(held_report) == counts(spot_report) and held_report["b"]["deleted"] == 50
+    # the contexts serve every frame: made for the points each edit leaves alive
+    assert contexts[0].for_alive(EditConfig(), np.asarray(held.points.alive)) is contexts[0]
+    assert int(contexts[1].neighbors.alive.sum()) == N
+    jax.tree_util.tree_map(np.testing.assert_array_equal, morph_scene(pair, cloud, contexts=contexts), spot)
 
 
 def test_models_rendered_differently_and_bad_clouds_are_refused(models):
