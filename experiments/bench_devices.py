@@ -53,12 +53,12 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     from ne_jax.geometry.points import PointState
     from ne_jax.render.renderer import PointScene, render_image
     from ne_jax.train import init_train_state, make_train_step
-    from ne_jax.train.run import get_run_preset
+    from ne_jax.train.run import INIT_CAPACITY_HEADROOM, get_run_preset
     from ne_jax.train.sampler import Batch
 
     run = get_run_preset("tiny")
     points = run.init.carve.num_points
-    capacity = int(points * run.init.capacity_headroom)
+    capacity = int(points * INIT_CAPACITY_HEADROOM)
     batch = run.sampler.batch_size
     rng = np.random.default_rng(0)
     x = rng.normal(size=(points, 3))

@@ -112,6 +112,7 @@ def run_size(n: int, quick: bool) -> dict:
         intersect_checked,
         knn_interpolate,
     )
+    from ne_jax.geometry.kdtree import KNN_EPS_FACTOR
 
     out = {"n": n}
     xyz = surface_cloud(n)
@@ -196,7 +197,7 @@ def run_size(n: int, quick: bool) -> dict:
     ist = np.asarray(state.ist).reshape(n, 9)
     logc = -np.logaddexp(0.0, -np.asarray(state.conf_logit, np.float64)).astype(np.float32)
     kd = cKDTree(xyz)
-    eps = np.float32(cfg.knn_eps_factor * float(tree.spacing))
+    eps = np.float32(KNN_EPS_FACTOR * float(tree.spacing))
 
     def run_scipy():
         # Same chunk of samples per call as the JAX path (32768), so memory stays comparable.

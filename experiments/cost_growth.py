@@ -277,13 +277,14 @@ def study(a: Axes, scene_root: Path, steps: int, repeats: int, render_repeats: i
 
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.pointcloud.init import Views
+    from ne_jax.train.run import INIT_CAPACITY_HEADROOM
     from ne_jax.train.state import init_train_state
 
     t_start = time.perf_counter()
     run = base_run(a.quick)
     scenes = [scene_dir(p, scene_root, log) for p in a.images]
     ref_points = a.clouds[0]
-    pts = {n: cloud(n, run.init.capacity_headroom, run.render.shading.feature_dim) for n in a.clouds}
+    pts = {n: cloud(n, INIT_CAPACITY_HEADROOM, run.render.shading.feature_dim) for n in a.clouds}
     params = init_train_state(run.train, run.render, pts[ref_points], jax.random.key(1)).params
     rows, compiled = [], {}
 

@@ -97,7 +97,7 @@ def toy(run, points: int):
     render = run.render.replace(kdtree=run.render.kdtree.replace(depth=None), chunk=256)
     rounds = dataclasses.replace(run.rounds, grow_rays=128, grow_chunk=128)
     return run.replace(init=dataclasses.replace(run.init, carve=carve), sampler=run.sampler.replace(batch_size=128),
-                       rounds=rounds, render=render, log_every=1).with_schedule(epochs=3, steps_per_epoch=2).replace(
+                       rounds=rounds, render=render).with_schedule(epochs=3, steps_per_epoch=2).replace(
                            round_epochs=(2, 2))
 
 
@@ -172,13 +172,14 @@ def rates(run, scene: Path, steps: int, repeats: int) -> dict:
     from ne_jax.pointcloud.init import ground_truth_cloud
     from ne_jax.render.quadrature import at_test_time
     from ne_jax.render.renderer import PointScene, render_image
+    from ne_jax.train.run import INIT_CAPACITY_HEADROOM
     from ne_jax.train.sampler import build_pool
     from ne_jax.train.state import init_train_state
 
     cloud = ground_truth_cloud(scene)
     n = min(len(cloud), run.init.carve.num_points)
     pick = np.random.default_rng(0).choice(len(cloud), n, replace=False)
-    points = PointState.from_numpy(cloud.xyz[pick], int(math.ceil(n * run.init.capacity_headroom)),
+    points = PointState.from_numpy(cloud.xyz[pick], int(math.ceil(n * INIT_CAPACITY_HEADROOM)),
                                    run.render.shading.feature_dim, normal=cloud.normals[pick], key=jax.random.key(0))
     t0 = time.perf_counter()
     built = PointScene.build(points, run.render, run.capacities)

@@ -179,7 +179,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
 
     from ne_jax.geometry import knn as K
     from ne_jax.geometry.intersect import intersect
-    from ne_jax.geometry.kdtree import build_tree
+    from ne_jax.geometry.kdtree import KNN_EPS_FACTOR, build_tree
     from ne_jax.render.composite import composite
     from ne_jax.render.quadrature import level_samples
     from ne_jax.render.renderer import render_rays, render_rays_with_aux
@@ -234,7 +234,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
             return slot, live, d, pos, w, flat(seg.node)[slot].astype(jnp.int32)
 
         slot, live, d, pos, w, node = add("packing and sampling", kind, r, pack, seg, rays, tree.depth)
-        eps = (tc.knn_eps_factor * tree.spacing).astype(jnp.float32)
+        eps = (KNN_EPS_FACTOR * tree.spacing).astype(jnp.float32)
         pts = sc.points
         pc, ci = add("candidate gather and KNN weights", kind, r,
                      lambda p, t_, x, n_, w_: K._per_candidate_weights(p, t_, x, n_, w_, tc.knn_k, eps)[:2],

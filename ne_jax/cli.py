@@ -77,8 +77,7 @@ def _run_config(args):
     if args.init != run.init.source or args.ply is not None:
         if args.ply is not None and args.init != "ply":
             raise ValueError(f"--ply: given with --init {args.init!r}; use --init ply")
-        run = run.replace(init=InitConfig(source=args.init, ply_path=args.ply, carve=run.init.carve,
-                                          capacity_headroom=run.init.capacity_headroom))
+        run = run.replace(init=InitConfig(source=args.init, ply_path=args.ply, carve=run.init.carve))
     return config_set(run.replace(background=args.background, seed=args.seed), *getattr(args, "set", []))
 
 

@@ -22,13 +22,6 @@ out of :func:`config_key` and of :func:`config_diff`, since it changes only what
 buffer, which is counted."""
 
 
-KEY_OMITS_DEFAULT = "key_omits_default"
-"""Metadata flag of a config field added after configs were keyed (``dataclasses.field(default=...,
-metadata={KEY_OMITS_DEFAULT: True})``): at its default it is left out of :func:`config_key`, so
-every config that does not use it keeps the key its results were recorded under; ``config.json``
-holds it like any field."""
-
-
 def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
     """A frozen config dataclass as nested JSON data with the type information to rebuild it.
 
@@ -39,8 +32,7 @@ def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
         out = {"__type__": f"{type(cfg).__module__}:{type(cfg).__qualname__}"}
         for f in dataclasses.fields(cfg):
             value = getattr(cfg, f.name)
-            omitted = f.metadata.get(BUFFER_SIZES) or (f.metadata.get(KEY_OMITS_DEFAULT) and value == f.default)
-            if _for_key and omitted:
+            if _for_key and f.metadata.get(BUFFER_SIZES):
                 continue
             out[f.name] = config_to_json(value, _for_key)
         return out
@@ -51,63 +43,6 @@ def config_to_json(cfg: Any, _for_key: bool = False) -> Any:
     if cfg is None or isinstance(cfg, (bool, int, float, str)):
         return cfg
     raise TypeError(f"config value of type {type(cfg).__name__} cannot be stored as typed JSON: {cfg!r}")
-
-
-MOVED = {
-    "ne_jax.train.loop:RunConfig": "ne_jax.train.run:RunConfig",
-    "ne_jax.train.loop:InitConfig": "ne_jax.train.run:InitConfig",
-    "ne_jax.pointcloud.optimise:PointOptConfig": "ne_jax.pointcloud.rounds:RoundConfig",
-}
-"""Config types stored under an older module path -> where they live now (read side only: a run
-directory written before a move still loads and resumes)."""
-
-MOVED_FIELDS = {
-    "ne_jax.geometry.kdtree:KDTreeConfig": {
-        "frontier_capacity": "frontier", "first_pass_frontier": "first_pass_frontier", "retry_share": "retry_share",
-        "max_segments": "max_segments"},
-    "ne_jax.render.renderer:RenderConfig": {"segments_per_ray": "segments_per_ray"},
-}
-"""Buffer sizes stored as fields of a setting's config -> their name in
-``ne_jax.geometry.capacity:Capacities`` (read side only): they move to the root ``RunConfig``'s
-``capacities``, or are dropped where the root is another config."""
-
-RENAMED_FIELDS = {
-    "ne_jax.train.run:RunConfig": {"points": "rounds", "point_rounds": "round_epochs"},
-    "ne_jax.render.shading:Effects": {"background": "background_model"},
-    "ne_jax.render.renderer:RenderConfig": {"tree": "kdtree"},
-}
-"""Fields stored under an older name -> their name now, per config type (read side only)."""
-
-_CAPACITIES = "ne_jax.geometry.capacity:Capacities"
-
-
-def _upgrade(data: Any) -> Any:
-    """``data`` with the type names of :data:`MOVED` and the fields of :data:`RENAMED_FIELDS`
-    replaced by the current ones, and the fields of :data:`MOVED_FIELDS` moved to a root
-    ``RunConfig``'s ``capacities``."""
-    moved: dict = {}
-
-    def walk(node):
-        if isinstance(node, dict):
-            kind = MOVED.get(node.get("__type__"), node.get("__type__"))
-            fields = MOVED_FIELDS.get(kind, {})
-            renamed = RENAMED_FIELDS.get(kind, {})
-            out = {}
-            for k, v in node.items():
-                if k in fields:
-                    moved[fields[k]] = v
-                else:
-                    out[renamed.get(k, k)] = kind if k == "__type__" else walk(v)
-            return out
-        if isinstance(node, list):
-            return [walk(v) for v in node]
-        return node
-
-    out = walk(data)
-    if moved and isinstance(out, dict) and out.get("__type__") == "ne_jax.train.run:RunConfig" \
-            and "capacities" not in out:
-        out["capacities"] = {"__type__": _CAPACITIES, **moved}
-    return out
 
 
 def _config_type(name: str) -> type:
@@ -136,20 +71,25 @@ def config_key(cfg: Any) -> str:
 
 
 def config_from_json(data: Any) -> Any:
-    """Inverse of :func:`config_to_json`; only ``ne_jax`` dataclasses are rebuilt (configs stored by
-    an older layout are upgraded first: :data:`MOVED`, :data:`MOVED_FIELDS`).
+    """Inverse of :func:`config_to_json`; only ``ne_jax`` dataclasses are rebuilt.
 
     Raises:
-        ConfigError: for a type outside ``ne_jax`` or one that no longer exists."""
-    return _from_json(_upgrade(data))
+        ConfigError: for a type outside ``ne_jax``, one that does not exist, or a field the type does
+            not have (a config written by another version of ne_jax)."""
+    return _from_json(data)
 
 
 def _from_json(data: Any) -> Any:
     if isinstance(data, dict) and "__tuple__" in data:
         return tuple(_from_json(v) for v in data["__tuple__"])
     if isinstance(data, dict) and "__type__" in data:
+        kind = _config_type(data["__type__"])
         fields = {k: _from_json(v) for k, v in data.items() if k != "__type__"}
-        return _config_type(data["__type__"])(**fields)
+        unknown = sorted(set(fields) - {f.name for f in dataclasses.fields(kind)})
+        if unknown:
+            raise ConfigError(f"config type {data['__type__']!r}: this ne_jax has no field(s) {unknown} (a config "
+                              "written by another version of ne_jax)")
+        return kind(**fields)
     if isinstance(data, list):
         return [_from_json(v) for v in data]
     return data
@@ -168,27 +108,11 @@ def _is_buffer_sizes(node: Any, name: str) -> bool:
     return bool(field is not None and field.metadata.get(BUFFER_SIZES))
 
 
-def _is_default(node: dict, name: str) -> bool:
-    """Whether field ``name`` of the encoded dataclass ``node`` holds the dataclass's default."""
-    field = _field(node, name)
-    if field is None:
-        return False
-    if field.default is not dataclasses.MISSING:
-        default = field.default
-    elif field.default_factory is not dataclasses.MISSING:
-        default = field.default_factory()
-    else:
-        return False
-    return config_to_json(default) == node[name]
-
-
 def config_diff(found: Any, expected: Any, prefix: str = "") -> list[str]:
     """Dotted names of the fields where two :func:`config_to_json` trees differ, with both values."""
     def is_node(x):
         return isinstance(x, dict) and "__tuple__" not in x
 
-    if not prefix:
-        found = _upgrade(found)
     if is_node(found) and is_node(expected):
         out = []
         for k in sorted(set(found) | set(expected), key=str):
@@ -196,8 +120,6 @@ def config_diff(found: Any, expected: Any, prefix: str = "") -> list[str]:
             if _is_buffer_sizes(expected, k):
                 continue
             if k not in found:
-                if _is_default(expected, k):  # a field added later, at its default: same config
-                    continue
                 out.append(f"{name} (missing in checkpoint; run has {expected[k]!r})")
             elif k not in expected:
                 out.append(f"{name} (unknown to this run; checkpoint has {found[k]!r})")

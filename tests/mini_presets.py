@@ -73,7 +73,7 @@ def mini_run(**changes) -> RunConfig:
     run = RunConfig(name="test", render=mini_render(), capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
                     train=TrainConfig(lr=5e-3), init=mini_init(),
                     rounds=RoundConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
-                    epochs=3, steps_per_epoch=3, round_epochs=(1, 2), log_every=2)
+                    epochs=3, steps_per_epoch=3, round_epochs=(1, 2))
     return run.with_schedule().replace(**changes)
 
 

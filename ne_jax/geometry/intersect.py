@@ -17,7 +17,7 @@ ray parallel to that slab: inside iff ``lo <= origin <= hi`` (closed). Such a co
 ray by less than ``1e-19 * far`` across the slab, so only an origin within that distance of a face
 can decide differently from the exact test. Otherwise the slab is ``[(lo-o)/d, (hi-o)/d]`` (ordered).
 The ray hits the box iff the clipped interval ``[max(enter, near), min(exit, far)]`` is longer than
-``cfg.min_hit_factor * tree.spacing`` (released code: ``unit_len / 16``). Rays through an edge or a
+``MIN_HIT_FACTOR * tree.spacing`` (released code: ``unit_len / 16``). Rays through an edge or a
 corner, grazing a box, or tangent to a curved cluster are then deterministic misses; a ray lying in a
 face plane (parallel axis, origin on the face) counts as inside.
 
@@ -49,7 +49,7 @@ from jax import lax
 
 from ne_jax.data.rays import Rays
 from ne_jax.geometry.capacity import Capacities, Lost, grow
-from ne_jax.geometry.kdtree import KDTree, KDTreeConfig
+from ne_jax.geometry.kdtree import MIN_HIT_FACTOR, KDTree, KDTreeConfig
 from ne_jax.numerics import safe_reciprocal, stable_ranks, tiny
 
 
@@ -184,7 +184,7 @@ def _traverse_one(tree: KDTree, origin, direction, near, far, cfg: KDTreeConfig,
     dtype = origin.dtype
     depth = tree.depth
     par, inv = _parallel_and_inverse(direction)
-    min_len = (cfg.min_hit_factor * tree.spacing).astype(dtype)
+    min_len = (MIN_HIT_FACTOR * tree.spacing).astype(dtype)
     world = (origin, inv, par)
     # Levels at and below a carried tree's frame level are tested in their subtree's frame: the ray
     # is mapped once per frontier node entering that level, and its children inherit it.

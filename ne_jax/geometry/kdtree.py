@@ -12,7 +12,7 @@ points"); the unused slots hold the sentinel ``C`` (the state's capacity). Split
 along the widest axis of the node's points.
 
 Box of a node = (its partition cell) ∩ (its points' bounding box grown by a margin). The margin is
-``margin_factor * spacing / sqrt(3) * clip(sqrt(k * s / 2), 1, margin_growth_cap)`` for a node of
+``margin_factor * spacing / sqrt(3) * clip(sqrt(k * s / 2), 1, MARGIN_GROWTH_CAP)`` for a node of
 ``s`` slots, ``k = 1`` at and below the top rendering level and ``k = 2`` above, ``spacing`` the mean
 nearest-neighbour distance — the released code's rule (its extra per-axis ``extent / sqrt(N)`` bound
 and its special case for cells reaching far past the points are left out: the first makes boxes of a
@@ -52,8 +52,43 @@ import numpy as np
 from flax import struct
 from scipy.spatial import cKDTree
 
-from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.fields import require
+
+MAX_DEPTH = 21
+"""Largest tree depth (the paper's 21 levels, up to 2**21 ~ 2M points; int32 node indices)."""
+
+MARGIN_GROWTH_CAP = 8.0
+"""Upper bound of the per-level margin growth ``sqrt(k * node_size / 2)``."""
+
+VALIDITY_STD_FACTOR = 5.0
+"""Validity threshold ``lim = mean + VALIDITY_STD_FACTOR * std`` of each point's distance to its
+``int(1.05 * candidates + 1.5)``-th nearest point (statistics on a subsample). A rendering-level
+box is invalid (traversed, never emitted) when its candidates reach farther than ``lim`` from its
+centre or its diagonal exceeds ``2 * lim``: the released code's "too spread out" rule."""
+
+VALIDITY_FLOOR_FACTOR = 4.0
+"""Lower bound of ``lim`` in units of ``spacing``: tiny clouds (fewer points than candidates)
+have degenerate statistics."""
+
+STAT_SAMPLES = 16384
+"""Points sampled (seed :data:`STAT_SEED`) to estimate ``spacing`` and ``lim``; all points if fewer."""
+
+STAT_SEED = 0
+"""Seed of the statistics subsample (the build is deterministic)."""
+
+FALLBACK_SPACING = 1e-2
+"""``spacing`` (absolute units) when it cannot be measured: one point, or all points identical
+and at one place. Otherwise a zero mean nearest-neighbour distance falls back to
+``extent / n**(1/3)``."""
+
+MIN_HIT_FACTOR = 1.0 / 32.0
+"""A ray hits a box only if the clipped intersection is longer than ``MIN_HIT_FACTOR * spacing``
+(released code: ``unit_len / 16`` with ``unit_len = spacing / 2``). Rays through edges, corners or
+grazing a box are thereby misses, deterministically."""
+
+KNN_EPS_FACTOR = 5e-4
+"""Distance offset in the KNN weights, in units of ``spacing`` (released code:
+``1e-3 * unit_len``): ``log(dist + eps)`` stays finite at a point."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,9 +102,6 @@ class KDTreeConfig:
     ``None``: the smallest ``D`` with ``2**D >= alive count``, at least ``num_render_levels + 1``.
     A fixed value keeps every array shape (and so every compiled function) the same across
     rebuilds; building fails if the alive count exceeds ``2**depth``."""
-
-    max_depth: int = 21
-    """Largest depth allowed (the paper: 21 levels, up to 2**21 ~ 2M points)."""
 
     num_render_levels: int = 4
     """Rendering levels: the bottom ``num_render_levels`` non-leaf levels (``D-4 .. D-1``, nodes of
@@ -87,37 +119,7 @@ class KDTreeConfig:
     margin_factor: float = 1.0
     """Scales the box margin (released code's ``bnd_pad_fact``)."""
 
-    margin_growth_cap: float = 8.0
-    """Upper bound of the per-level margin growth ``sqrt(k * node_size / 2)``."""
-
-    validity_std_factor: float = 5.0
-    """Validity threshold ``lim = mean + validity_std_factor * std`` of each point's distance to its
-    ``int(1.05 * candidates + 1.5)``-th nearest point (statistics on a subsample). A rendering-level
-    box is invalid (traversed, never emitted) when its candidates reach farther than ``lim`` from its
-    centre or its diagonal exceeds ``2 * lim``: the released code's "too spread out" rule."""
-
-    validity_floor_factor: float = 4.0
-    """Lower bound of ``lim`` in units of ``spacing``: tiny clouds (fewer points than candidates)
-    have degenerate statistics."""
-
-    stat_samples: int = 16384
-    """Points sampled (fixed seed) to estimate ``spacing`` and ``lim``; all points if fewer."""
-
-    fallback_spacing: float = 1e-2
-    """``spacing`` (absolute units) when it cannot be measured: one point, or all points identical
-    and at one place. Otherwise a zero mean nearest-neighbour distance falls back to
-    ``extent / n**(1/3)``."""
-
-    min_hit_factor: float = 1.0 / 32.0
-    """A ray hits a box only if the clipped intersection is longer than ``min_hit_factor * spacing``
-    (released code: ``unit_len / 16`` with ``unit_len = spacing / 2``). Rays through edges, corners or
-    grazing a box are thereby misses, deterministically."""
-
-    knn_eps_factor: float = 5e-4
-    """Distance offset in the KNN weights, in units of ``spacing`` (released code:
-    ``1e-3 * unit_len``): ``log(dist + eps)`` stays finite at a point."""
-
-    density_falloff: float | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
+    density_falloff: float | None = None
     """``None``: the KNN interpolation is normalised and nothing else. A number ``f``: the lookups
     also return the *density gate* of every sample, ``sum_k w_k c_k phi(d_k)`` with the KNN weights
     ``w``, the neighbours' confidences ``c`` and ``phi(d) = 1 - exp(-f spacing / d)`` (1 at a point,
@@ -125,37 +127,22 @@ class KDTreeConfig:
     (:mod:`ne_jax.geometry.knn`). Confidences then scale the density they support, as PointNeRF's
     do, and a sample far from every point is nearly empty."""
 
-    exact_chunk: int = 256
-    """Samples per chunk in the brute-force exact KNN mode (memory: ``chunk * C`` distances)."""
-
-    seed: int = 0
-    """Seed of the statistics subsample (the build is deterministic)."""
-
     def __post_init__(self):
         def need(cond, name, expected):
             require(self, cond, name, expected)
 
         need(self.num_render_levels >= 1, "num_render_levels", "an integer >= 1")
-        need(self.max_depth >= self.num_render_levels + 1, "max_depth", ">= num_render_levels + 1")
-        need(self.max_depth <= 30, "max_depth", "<= 30 (int32 node indices)")
+        need(self.num_render_levels + 1 <= MAX_DEPTH, "num_render_levels", f"at most {MAX_DEPTH - 1} (MAX_DEPTH - 1)")
         if self.depth is not None:
             need(
-                self.num_render_levels + 1 <= self.depth <= self.max_depth,
+                self.num_render_levels + 1 <= self.depth <= MAX_DEPTH,
                 "depth",
-                f"None or an integer in [num_render_levels + 1, max_depth] = "
-                f"[{self.num_render_levels + 1}, {self.max_depth}]",
+                f"None or an integer in [num_render_levels + 1, MAX_DEPTH] = "
+                f"[{self.num_render_levels + 1}, {MAX_DEPTH}]",
             )
         need(self.candidate_min >= 1, "candidate_min", "an integer >= 1")
         need(1 <= self.knn_k <= self.num_candidates, "knn_k", f"an integer in [1, {self.num_candidates}]")
         need(self.margin_factor > 0, "margin_factor", "> 0")
-        need(self.margin_growth_cap >= 1, "margin_growth_cap", ">= 1")
-        need(self.validity_std_factor >= 0, "validity_std_factor", ">= 0")
-        need(self.validity_floor_factor > 0, "validity_floor_factor", "> 0")
-        need(self.stat_samples >= 1, "stat_samples", ">= 1")
-        need(self.fallback_spacing > 0, "fallback_spacing", "> 0")
-        need(self.min_hit_factor >= 0, "min_hit_factor", ">= 0")
-        need(self.knn_eps_factor > 0, "knn_eps_factor", "> 0")
-        need(self.exact_chunk >= 1, "exact_chunk", "an integer >= 1")
         need(self.density_falloff is None or self.density_falloff > 0, "density_falloff", "None or > 0")
 
     @property
@@ -262,7 +249,7 @@ class KDTree:
 
 def _level_margin_growth(cfg: KDTreeConfig, slots: int) -> float:
     k = 1.0 if slots <= 2**cfg.num_render_levels else 2.0
-    return float(np.clip(math.sqrt(k * slots / 2.0), 1.0, cfg.margin_growth_cap))
+    return float(np.clip(math.sqrt(k * slots / 2.0), 1.0, MARGIN_GROWTH_CAP))
 
 
 def tree_depth(num_alive: int, cfg: KDTreeConfig) -> int:
@@ -276,10 +263,10 @@ def tree_depth(num_alive: int, cfg: KDTreeConfig) -> int:
             )
         return cfg.depth
     d = max(lo, int(math.ceil(math.log2(max(num_alive, 1)))))
-    if d > cfg.max_depth:
+    if d > MAX_DEPTH:
         raise ValueError(
-            f"alive: expected at most 2**max_depth = {2**cfg.max_depth} alive points, found {num_alive} "
-            f"(raise KDTreeConfig.max_depth)"
+            f"alive: expected at most 2**MAX_DEPTH = {2**MAX_DEPTH} alive points (the tree's largest depth), "
+            f"found {num_alive}"
         )
     return d
 
@@ -294,8 +281,8 @@ def _spacing_stats(x: np.ndarray, kd: cKDTree, cfg: KDTreeConfig) -> tuple[float
     distance to the ``j``-th neighbour grows with ``j`` (``d_j ~ j**(1/dim)``: 2 on a surface, 3 in
     a volume; 2 where it cannot be measured), from the same sample and query."""
     n = x.shape[0]
-    rng = np.random.default_rng(cfg.seed)
-    sample = x if n <= cfg.stat_samples else x[rng.choice(n, cfg.stat_samples, replace=False)]
+    rng = np.random.default_rng(STAT_SEED)
+    sample = x if n <= STAT_SAMPLES else x[rng.choice(n, STAT_SAMPLES, replace=False)]
     kv = min(int(1.05 * cfg.num_candidates + 1.5), n)
     kq = max(kv, 2) if n >= 2 else 1
     dist, _ = kd.query(sample, k=kq, workers=-1)
@@ -303,16 +290,16 @@ def _spacing_stats(x: np.ndarray, kd: cKDTree, cfg: KDTreeConfig) -> tuple[float
     spacing = float(np.mean(dist[:, 1])) if n >= 2 else 0.0
     if not spacing > 0.0:
         extent = float(np.max(x.max(axis=0) - x.min(axis=0))) if n >= 2 else 0.0
-        spacing = extent / n ** (1.0 / 3.0) if extent > 0 else float(cfg.fallback_spacing)
+        spacing = extent / n ** (1.0 / 3.0) if extent > 0 else FALLBACK_SPACING
     dk = dist[:, kv - 1]
-    lim = float(np.mean(dk) + cfg.validity_std_factor * np.std(dk))
+    lim = float(np.mean(dk) + VALIDITY_STD_FACTOR * np.std(dk))
     dim = 2.0
     j_lo, j_hi = 8, kq - 1
     if j_hi >= 4 * j_lo:
         d_lo, d_hi = float(np.median(dist[:, j_lo])), float(np.median(dist[:, j_hi]))
         if d_lo > 0 and d_hi > d_lo:
             dim = float(np.clip(math.log(j_hi / j_lo) / math.log(d_hi / d_lo), 1.0, 3.0))
-    return spacing, max(lim, cfg.validity_floor_factor * spacing), dim
+    return spacing, max(lim, VALIDITY_FLOOR_FACTOR * spacing), dim
 
 
 def _check_inputs(xyz, alive) -> tuple[np.ndarray, np.ndarray]:
@@ -695,7 +682,7 @@ def build_tree(xyz, alive, cfg: KDTreeConfig = KDTreeConfig(), timings: dict | N
 
     Args:
         xyz: ``[C, 3]`` positions (a ``PointState.xyz``; numpy or jax). Dead rows may hold anything.
-        alive: ``[C]`` bool mask; at least one alive point, at most ``2**max_depth``.
+        alive: ``[C]`` bool mask; at least one alive point, at most ``2**MAX_DEPTH``.
         cfg: static settings.
         timings: if a dict, receives the wall time in seconds of the build's phases
             (``index``: scipy tree + spacing statistics, ``splits``, ``boxes``, ``candidates``).

@@ -5,7 +5,7 @@ among ``g``'s candidate set (the ``num_candidates`` points nearest the box centr
 time) — a fixed-shape gather plus ``lax.top_k``, never a sort (the renderer's integration ranks the
 candidates instead, up to :data:`RANK_MAX_CANDIDATES` of them: the same neighbours). The weights are
 
-    ``w_j = softmax_j( log(conf_j) - log(|q - p_j| + eps) )``,  ``eps = knn_eps_factor * spacing``,
+    ``w_j = softmax_j( log(conf_j) - log(|q - p_j| + eps) )``,  ``eps = KNN_EPS_FACTOR * spacing``,
 
 which follows the released code (plain distance plus a small epsilon: ``1e-3 * unit_len`` with
 ``unit_len = spacing / 2``), not the paper's squared distance. The epsilon is what makes a sample
@@ -31,7 +31,7 @@ weights sum to 1 whatever the confidences, so a point's confidence only matters 
 neighbours', and a sample three spacings from the surface reads the surface's features.
 
 ``exact=True`` replaces the candidate sets by a brute-force search over all ``C`` points (chunked by
-``cfg.exact_chunk`` samples): the global ``K`` nearest alive points, for reference and accuracy
+``EXACT_CHUNK`` samples): the global ``K`` nearest alive points, for reference and accuracy
 studies.
 """
 
@@ -45,9 +45,12 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
-from ne_jax.geometry.kdtree import KDTree, KDTreeConfig
+from ne_jax.geometry.kdtree import KNN_EPS_FACTOR, KDTree, KDTreeConfig
 from ne_jax.geometry.points import PointState
 from ne_jax.numerics import safe_log, safe_norm, safe_sqrt, stable_ranks
+
+EXACT_CHUNK = 256
+"""Samples per chunk of the brute-force exact KNN (memory: ``chunk * C`` distances)."""
 
 
 @struct.dataclass
@@ -84,9 +87,9 @@ def falloff(dist: jax.Array, scale, eps) -> jax.Array:
     return -jnp.expm1(-scale / (dist + eps))
 
 
-def _eps(cfg: KDTreeConfig, tree: KDTree, dtype):
-    """The distance offset of the weights, ``knn_eps_factor * spacing``."""
-    return (cfg.knn_eps_factor * tree.spacing).astype(dtype)
+def _eps(tree: KDTree, dtype):
+    """The distance offset of the weights, ``KNN_EPS_FACTOR * spacing``."""
+    return (KNN_EPS_FACTOR * tree.spacing).astype(dtype)
 
 
 def _gate_scale(cfg: KDTreeConfig, tree: KDTree, dtype):
@@ -222,11 +225,11 @@ def _search(state, tree, points, segment_node, cfg: KDTreeConfig, exact: bool):
         raise ValueError(f"points: expected shape [..., 3], found shape {points.shape}")
     if tree is None:
         raise ValueError("tree: expected a KDTree (its spacing sets the distance epsilon), found None")
-    eps = _eps(cfg, tree, points.dtype)
+    eps = _eps(tree, points.dtype)
     k = cfg.knn_k
     if exact:
         flat = points.reshape(-1, 3)
-        idx, valid = _exact_neighbors(state, flat, k, cfg.exact_chunk)
+        idx, valid = _exact_neighbors(state, flat, k, EXACT_CHUNK)
         nb = _finish(state, flat, idx, valid, eps)
         return jax.tree_util.tree_map(lambda a: a.reshape(points.shape[:-1] + (k,)), nb), None
     if segment_node is None:
@@ -274,7 +277,7 @@ def knn_neighbors(
             shape ``points.shape[:-1]`` (one per sample) or ``points.shape[:-2]`` (one per segment,
             shared by the samples on axis ``-2``: the candidate gather is then done once per
             segment). Ignored (may be ``None``) when ``exact``.
-        cfg: static; ``knn_k`` and ``knn_eps_factor`` (and ``exact_chunk``) are used.
+        cfg: static; ``knn_k`` is used.
         exact: global brute-force KNN instead of the candidate sets.
     """
     return _search(state, tree, points, segment_node, cfg, exact)[0]
@@ -335,7 +338,7 @@ def knn_interpolate(
     out = _interpolate_shared(*dense, values) if dense is not None else interpolate(nb, values)
     scale = _gate_scale(cfg, tree, points.dtype)
     if scale is not None:
-        out = _with_gate(out, neighbor_gate(state, nb, scale, _eps(cfg, tree, points.dtype)))
+        out = _with_gate(out, neighbor_gate(state, nb, scale, _eps(tree, points.dtype)))
     return out, nb
 
 
@@ -375,7 +378,7 @@ def knn_integrate(
             f"cfg.num_candidates: expected the tree's candidate width {tree.candidates.shape[-1]}, "
             f"found {cfg.num_candidates}"
         )
-    eps = _eps(cfg, tree, points.dtype)
+    eps = _eps(tree, points.dtype)
     scale = _gate_scale(cfg, tree, points.dtype)
     per_candidate, ci, gate = _per_candidate_weights(state, tree, points, segment_node.astype(jnp.int32), weight,
                                                      cfg.knn_k, eps, scale)

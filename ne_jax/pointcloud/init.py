@@ -253,6 +253,16 @@ def visibility(views: Views, xyz: np.ndarray, spacing: float, tolerance: float =
 # ----------------------------------------------------------------------------------------------
 
 
+PHOTO_TOLERANCE = 0.1
+"""Photo-consistency: a view agrees with a voxel when its colour (straight RGB in [0, 1]) is within
+this of the median colour over the voxel's visible views, in every channel."""
+PHOTO_AGREE = 0.6
+"""A voxel is photo-consistent when at least this fraction of its visible views agree (robust to
+highlights seen in a few views)."""
+PHOTO_MIN_VIEWS = 3
+"""Voxels visible in fewer views are never removed by photo-consistency."""
+
+
 @dataclasses.dataclass(frozen=True)
 class CarveConfig:
     """Settings of :func:`carve_visual_hull`."""
@@ -277,14 +287,6 @@ class CarveConfig:
     photo_iters: int = 0
     """Photo-consistency sweeps after silhouette carving (0: off; needs ``Views.rgb``). Each sweep
     removes the shell voxels whose colours disagree across the views that see them."""
-    photo_tolerance: float = 0.1
-    """A view agrees with a voxel when its colour (straight RGB in [0, 1]) is within this of the
-    median colour over the voxel's visible views, in every channel."""
-    photo_agree: float = 0.6
-    """A voxel is photo-consistent when at least this fraction of its visible views agree (robust to
-    highlights seen in a few views)."""
-    photo_min_views: int = 3
-    """Voxels visible in fewer views are never removed by photo-consistency."""
 
 
 def _check_cfg(cfg: CarveConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -303,11 +305,8 @@ def _check_cfg(cfg: CarveConfig) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"cfg.min_views: expected an integer >= 1, found {cfg.min_views!r}")
     if not 0.0 <= cfg.jitter <= 1.0:
         raise ValueError(f"cfg.jitter: expected a fraction in [0, 1], found {cfg.jitter!r}")
-    if int(cfg.photo_iters) < 0 or not 0.0 < cfg.photo_agree <= 1.0 or not cfg.photo_tolerance > 0:
-        raise ValueError(
-            "cfg.photo_*: expected photo_iters >= 0, photo_agree in (0, 1], photo_tolerance > 0; found "
-            f"{cfg.photo_iters!r}, {cfg.photo_agree!r}, {cfg.photo_tolerance!r}"
-        )
+    if int(cfg.photo_iters) < 0:
+        raise ValueError(f"cfg.photo_iters: expected an integer >= 0, found {cfg.photo_iters!r}")
     return lo, hi
 
 
@@ -379,8 +378,8 @@ def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray,
     bilinearly (premultiplied by alpha, then divided by it, so the background does not bleed in) at
     the voxel centre moved onto the silhouette hull along its outward direction where the hull
     crosses within the voxel's reach (parallax between views would otherwise mix colours); a voxel
-    seen by at least ``cfg.photo_min_views`` views is removed when fewer than
-    ``cfg.photo_agree`` of them lie within ``cfg.photo_tolerance`` of the median colour. Removing a
+    seen by at least :data:`PHOTO_MIN_VIEWS` views is removed when fewer than
+    :data:`PHOTO_AGREE` of them lie within :data:`PHOTO_TOLERANCE` of the median colour. Removing a
     voxel exposes the one behind it to the next sweep, so concavities that silhouettes cannot see
     (a cup's opening) are dug out sweep by sweep.
 
@@ -416,9 +415,9 @@ def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray,
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: voxels nobody sees
             median = np.nanmedian(color, axis=0)
-        agree = (np.abs(color - median) <= cfg.photo_tolerance).all(-1) & vis
+        agree = (np.abs(color - median) <= PHOTO_TOLERANCE).all(-1) & vis
         frac = agree.sum(0) / np.maximum(count, 1)
-        bad = (count >= cfg.photo_min_views) & (frac < cfg.photo_agree)
+        bad = (count >= PHOTO_MIN_VIEWS) & (frac < PHOTO_AGREE)
         removed.append(int(bad.sum()))
         if not bad.any():
             break
@@ -426,7 +425,7 @@ def photo_consistency(cfg: CarveConfig, views: Views, occupied: np.ndarray,
         if not occupied.any():
             raise CarvingError(
                 "photo-consistency removed every voxel: colours disagree across views everywhere "
-                f"(cfg.photo_tolerance={cfg.photo_tolerance} too small, or the cameras do not match the images)"
+                f"(PHOTO_TOLERANCE={PHOTO_TOLERANCE} too small, or the cameras do not match the images)"
             )
     return occupied, {"photo_removed_per_sweep": removed}
 

@@ -1,7 +1,7 @@
 """Point normals with Open3D, oriented consistently towards the cameras.
 
 Estimation: Open3D ``estimate_normals`` (PCA of the neighbourhood) with a hybrid KD-tree search,
-radius ``cfg.radius_factor`` times the mean nearest-neighbour spacing, at most ``cfg.max_nn``
+radius :data:`RADIUS_FACTOR` times the mean nearest-neighbour spacing, at most ``cfg.max_nn``
 neighbours (:func:`~ne_jax.pointcloud.neighbors.pca_normals`: the same on scipy where Open3D
 cannot be imported). Re-run after every change of the cloud (growing, pruning, editing).
 
@@ -9,21 +9,21 @@ Orientation (``cfg.orient``) — PCA gives an axis, not a sign:
 
 ``"visibility"`` (default)
     Visibility votes (below), then propagation: points whose vote magnitude is at least
-    ``cfg.vote_threshold`` keep their voted sign; every other point repeatedly takes the sign that
-    agrees best with its ``cfg.propagate_k`` nearest neighbours, weighted by ``n_i . n_j`` and by
+    ``VOTE_THRESHOLD`` keep their voted sign; every other point repeatedly takes the sign that
+    agrees best with its ``PROPAGATE_K`` nearest neighbours, weighted by ``n_i . n_j`` and by
     ``exp(-(h / spacing)^2)`` with ``h`` the neighbour's height above the point's tangent plane (so
     the two sides of a thin wall do not vote for each other), until nothing changes.
 ``"visibility_votes"``
     Each point votes over the views that *see* it: a z-buffer of the cloud is splatted per view
     (pixels about two point spacings wide at the cloud's depth) and a point is visible when it lies
-    within ``cfg.depth_tolerance`` spacings of the front-most point of its pixel. Each visible view
+    within ``DEPTH_TOLERANCE`` spacings of the front-most point of its pixel. Each visible view
     adds ``cos(n, camera - p)``; the normal is flipped when the sum is negative. Points no view sees
     face their nearest camera centre.
 ``"nearest_camera"``
     Face the nearest camera centre (Open3D's ``orient_normals_towards_camera_location`` with each
     point's own nearest camera).
 ``"tangent_plane"``
-    Open3D ``orient_normals_consistent_tangent_plane(cfg.tangent_k)`` (propagation over a Riemannian
+    Open3D ``orient_normals_consistent_tangent_plane(TANGENT_K)`` (propagation over a Riemannian
     graph), then one global sign chosen by the visibility votes. Falls back to
     ``"visibility_votes"`` where Open3D refuses the input (degenerate clouds) or cannot be imported.
 ``"none"``
@@ -59,27 +59,29 @@ from ne_jax.pointcloud.neighbors import open3d_module, pca_normals
 ORIENTATIONS = ("visibility", "visibility_votes", "nearest_camera", "tangent_plane", "none")
 
 
+RADIUS_FACTOR = 4.0
+"""PCA search radius in units of the mean nearest-neighbour spacing."""
+TANGENT_K = 16
+"""Neighbours of the Riemannian graph of ``orient="tangent_plane"``."""
+DEPTH_TOLERANCE = 2.0
+"""Visibility: a point within this many spacings behind the front-most point of its z-buffer pixel
+counts as visible."""
+VOTE_THRESHOLD = 1.0
+"""``"visibility"``: points whose summed visibility vote has at least this magnitude keep its sign."""
+PROPAGATE_K = 16
+"""``"visibility"``: neighbours in the sign propagation."""
+PROPAGATE_ITERS = 50
+"""``"visibility"``: at most this many propagation sweeps."""
+
+
 @dataclasses.dataclass(frozen=True)
 class NormalConfig:
     """Settings of :func:`estimate_normals`."""
 
-    radius_factor: float = 4.0
-    """Search radius in units of the mean nearest-neighbour spacing."""
     max_nn: int = 30
     """At most this many neighbours in the PCA."""
     orient: str = "visibility"
     """One of :data:`ORIENTATIONS` (see the module docstring)."""
-    tangent_k: int = 16
-    """Neighbours of the Riemannian graph of ``orient="tangent_plane"``."""
-    depth_tolerance: float = 2.0
-    """Visibility: a point within this many spacings behind the front-most point of its z-buffer
-    pixel counts as visible."""
-    vote_threshold: float = 1.0
-    """``"visibility"``: points whose summed visibility vote has at least this magnitude keep its sign."""
-    propagate_k: int = 16
-    """``"visibility"``: neighbours in the sign propagation."""
-    propagate_iters: int = 50
-    """``"visibility"``: at most this many propagation sweeps."""
 
 
 def unique_rows(xyz: np.ndarray) -> np.ndarray:
@@ -185,9 +187,9 @@ def orient_normals(cfg: NormalConfig, xyz, normals, cameras, spacing: float | No
     if cfg.orient == "tangent_plane":
         propagated = _tangent_plane(cfg, xyz, normals)
         if propagated is not None:
-            votes = _visibility_votes(cameras, xyz, propagated, spacing, cfg.depth_tolerance)
+            votes = _visibility_votes(cameras, xyz, propagated, spacing, DEPTH_TOLERANCE)
             return -propagated if votes.sum() < 0 else propagated
-    votes = _visibility_votes(cameras, xyz, normals, spacing, cfg.depth_tolerance)
+    votes = _visibility_votes(cameras, xyz, normals, spacing, DEPTH_TOLERANCE)
     sign = np.sign(votes)
     if cfg.orient == "visibility" and len(xyz) > 1:
         sign = _propagate_signs(cfg, xyz, normals, votes, spacing)
@@ -200,14 +202,14 @@ def orient_normals(cfg: NormalConfig, xyz, normals, cameras, spacing: float | No
 def _propagate_signs(cfg: NormalConfig, xyz, normals, votes, spacing) -> np.ndarray:
     """``[N]`` signs in ``{-1, 0, 1}``: confident votes fixed, the rest by weighted neighbour
     agreement (see the module docstring), ``votes`` breaking ties; 0 where nothing decided."""
-    k = min(int(cfg.propagate_k), len(xyz) - 1)
+    k = min(PROPAGATE_K, len(xyz) - 1)
     _, nb = cKDTree(xyz).query(xyz, k=k + 1, workers=-1)
     nb = nb[:, 1:]
     height = np.abs(np.einsum("nkc,nc->nk", xyz[nb] - xyz[:, None], normals))
     weight = np.einsum("nkc,nc->nk", normals[nb], normals) * np.exp(-((height / max(spacing, 1e-12)) ** 2))
-    fixed = np.abs(votes) >= cfg.vote_threshold
+    fixed = np.abs(votes) >= VOTE_THRESHOLD
     sign = np.where(fixed, np.sign(votes), 0.0)
-    for _ in range(int(cfg.propagate_iters)):
+    for _ in range(PROPAGATE_ITERS):
         score = (weight * sign[nb]).sum(1) + 1e-3 * votes
         new = np.where(fixed, sign, np.sign(score))
         if np.array_equal(new, sign):
@@ -218,12 +220,12 @@ def _propagate_signs(cfg: NormalConfig, xyz, normals, votes, spacing) -> np.ndar
 
 def _tangent_plane(cfg: NormalConfig, xyz, normals) -> np.ndarray | None:
     o3d = open3d_module()
-    if o3d is None or len(xyz) <= cfg.tangent_k:  # no scipy twin: the caller takes the visibility votes
+    if o3d is None or len(xyz) <= TANGENT_K:  # no scipy twin: the caller takes the visibility votes
         return None
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     pcd.normals = o3d.utility.Vector3dVector(normals)
     try:
-        pcd.orient_normals_consistent_tangent_plane(cfg.tangent_k)
+        pcd.orient_normals_consistent_tangent_plane(TANGENT_K)
     except RuntimeError:  # qhull refuses co-planar/co-spherical/degenerate input
         return None
     out = np.asarray(pcd.normals).copy()
@@ -241,14 +243,14 @@ def estimate_normals(cfg: NormalConfig, xyz, cameras=None) -> np.ndarray:
     xyz = _check_xyz(xyz)
     if cfg.orient not in ORIENTATIONS:
         raise ValueError(f"cfg.orient: expected one of {ORIENTATIONS}, found {cfg.orient!r}")
-    if not cfg.radius_factor > 0 or int(cfg.max_nn) < 3:
-        raise ValueError(f"cfg: expected radius_factor > 0 and max_nn >= 3, found {cfg.radius_factor}, {cfg.max_nn}")
+    if int(cfg.max_nn) < 3:
+        raise ValueError(f"cfg.max_nn: expected an integer >= 3, found {cfg.max_nn}")
     if len(xyz) == 0:
         return np.zeros((0, 3), np.float32)
     spacing = mean_spacing(xyz)
     normals = _degenerate_normals(xyz)
     if normals is None:
-        normals = pca_normals(xyz, cfg.radius_factor * spacing, cfg.max_nn)
+        normals = pca_normals(xyz, RADIUS_FACTOR * spacing, cfg.max_nn)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     bad = ~(np.isfinite(normals).all(1, keepdims=True) & (length > 1e-12))
     normals = np.where(bad, np.array([0.0, 0.0, 1.0]), normals / np.where(bad, 1.0, length))

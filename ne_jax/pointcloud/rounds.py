@@ -5,25 +5,24 @@ One round (:func:`point_round`) on a trained model:
 1. **Grow.** :func:`scan_growth` (jit) walks each scanned training ray through the K-D voxels of the
    rendering levels *and* the growing level (whose larger boxes also cover holes in the cloud),
    evaluates the model's density at every sample, and takes per ray the densest sample; it is a
-   candidate when it lies at least ``grow_min_distance`` point spacings from every point (its
-   nearest KNN candidate) and its density reaches ``grow_min_sigma`` (PointNeRF's rule: the ray's
+   candidate when it lies at least ``GROW_MIN_DISTANCE`` point spacings from every point (its
+   nearest KNN candidate) and its density reaches ``GROW_MIN_SIGMA`` (PointNeRF's rule: the ray's
    opacity peak sits in a gap of the cloud). The ray's priority is its photometric error. On the host,
-   :func:`select_growth` keeps one candidate per cubic cell of ``grow_cell`` spacings (the highest
+   :func:`select_growth` keeps one candidate per cubic cell of ``GROW_CELL`` spacings (the highest
    priority; a uniform grid stands in for the paper's "small K-D voxel": the tree's voxels hold
    points, and a candidate lies where there are none) and at most ``grow_max_fraction`` of the alive
    count, highest priority first. New points take the KNN-interpolated feature at their position and
    confidence 0.5; they fill dead slots first and the capacity is re-allocated on the host when
    that is not enough (:func:`add_points`).
-2. **Prune** points with confidence below ``prune_threshold`` (at most ``prune_max_fraction`` of them
-   per round, the least confident, when set).
+2. **Prune** points with confidence below ``prune_threshold``.
 3. **Denoise**: Open3D statistical outlier removal (``outlier_neighbors`` = 64 neighbours as the
-   released code, ``outlier_std_ratio``), limited to points at least ``outlier_min_ratio`` times the
+   released code, ``OUTLIER_STD_RATIO``), limited to points at least ``outlier_min_ratio`` times the
    median mean-neighbour distance from their neighbours (ours: without it a clean cloud loses its
    sparsest 2% every round) and, optionally, to points less confident than
    ``outlier_keep_confidence``.
 4. **Normals** re-estimated with Open3D for the new cloud (the tree is rebuilt by the caller).
 
-Pruning and denoising never leave fewer than ``min_points`` alive points: a step that would is
+Pruning and denoising never leave fewer than :data:`MIN_POINTS` alive points: a step that would is
 skipped, and the report says so (a model whose confidences all collapsed keeps its cloud rather than
 losing it). Every count is reported, nothing is dropped silently.
 """
@@ -40,7 +39,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ne_jax.checks import checked
-from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.data.rays import Rays
 from ne_jax.fields import require
 from ne_jax.geometry.capacity import LostCounts
@@ -54,6 +52,24 @@ from ne_jax.render.quadrature import at_test_time, level_samples
 from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, until_complete
 from ne_jax.render.stage import shade_samples
 
+MIN_POINTS = 64
+"""Pruning and denoising are skipped when they would leave fewer alive points."""
+GROW_MIN_DISTANCE = 2.0
+"""A growth candidate lies at least this many point spacings from its nearest point ..."""
+GROW_MIN_SIGMA = 1.0
+"""... and its density (per point spacing) is at least this (opacity ``1 - e^-1`` over one spacing)."""
+GROW_CELL = 2.0
+"""One growth candidate per cubic cell of this many point spacings."""
+HOLE_SHARE = 0.25
+"""With ``RoundConfig.fill_holes``: the share of the scanned rays, highest error first among those
+the scan found no candidate on, searched for holes."""
+OUTLIER_STD_RATIO = 3.0
+"""A point is a statistical outlier when its mean neighbour distance exceeds the mean by this many
+standard deviations (ours: 2.0 removed a few per cent of good points per round on thin parts)."""
+CAPACITY_HEADROOM = 1.25
+"""When growth needs more slots than the capacity has free, the new capacity is
+``ceil(needed * CAPACITY_HEADROOM)``."""
+
 
 @dataclasses.dataclass(frozen=True)
 class RoundConfig:
@@ -66,47 +82,26 @@ class RoundConfig:
     """Training rays scanned for growth candidates per round."""
     grow_chunk: int = 512
     """Rays per compiled scan call (memory: ``chunk * max_segments * samples * K`` neighbours)."""
-    grow_min_distance: float = 2.0
-    """A candidate lies at least this many point spacings from its nearest point."""
-    grow_min_sigma: float = 1.0
-    """... and its density (per point spacing) is at least this (opacity ``1 - e^-1`` over one spacing)."""
-    grow_cell: float = 2.0
-    """One candidate per cubic cell of this many point spacings."""
     grow_max_fraction: float = 0.02
     """At most this share of the alive count is added per round."""
     fill_holes: bool = False
     """Also look for candidates where badly rendered rays meet no voxel, by photo-consistency along
     them (:mod:`ne_jax.pointcloud.holes`): a part of the surface the cloud misses entirely."""
-    hole_share: float = 0.25
-    """With ``fill_holes``: the share of the scanned rays, highest error first among those the scan
-    found no candidate on, searched for holes."""
     prune_threshold: float = 0.1
     """Points with confidence below this are pruned (docs/design.md: 0.1)."""
-    prune_max_fraction: float | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
-    """``None``: every point below the threshold goes (the released code). A number: at most this share
-    of the alive count per round, the least confident first, so confidences that fall in bulk (a
-    density gate whose confidences learn fast over long epochs) thin the cloud round by round instead
-    of emptying it in one."""
     outlier_neighbors: int = 64
     """Neighbours of the statistical outlier removal (released code: 64)."""
-    outlier_std_ratio: float = 3.0
-    """A point is an outlier when its mean neighbour distance exceeds the mean by this many standard
-    deviations (our choice: 2.0 removed a few per cent of good points per round on thin parts)..."""
     outlier_min_ratio: float = 2.0
-    """... and at least this multiple of the median one (ours). On a clean surface cloud the
-    statistical threshold alone sits at about 1.2x the median, so each round removed the sparsest 2%
-    of good points, and holes grew round after round (a 200 px blocks run lost a quarter of its
-    sphere). A floater is many times the median away; 0 turns the floor off."""
-    outlier_keep_confidence: float | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
+    """A statistical outlier (:data:`OUTLIER_STD_RATIO`) is removed only when its mean neighbour
+    distance is at least this multiple of the median one (ours): on a clean surface cloud the
+    statistical threshold alone sits near the median, so each round would remove the sparsest good
+    points and holes would grow round after round. A floater is many times the median away; 0 turns
+    the floor off."""
+    outlier_keep_confidence: float | None = None
     """``None``: every statistical outlier beyond the floor goes. A number: outliers whose confidence
     is at least this stay. A thin part (stool's foot ring: a few dozen points, fewer than the 64
     neighbours the test compares against) is flagged point by point; when the rendering needs it its
     confidences say so, which only a density gate (``KDTreeConfig.density_falloff``) lets them do."""
-    min_points: int = 64
-    """Pruning and denoising are skipped when they would leave fewer alive points."""
-    capacity_headroom: float = 1.25
-    """When growth needs more slots than the capacity has free, the new capacity is
-    ``ceil(needed * capacity_headroom)``."""
 
     def __post_init__(self):
         def need(cond, name, expected):
@@ -114,21 +109,12 @@ class RoundConfig:
 
         need(self.grow_rays >= 1, "grow_rays", "an integer >= 1")
         need(self.grow_chunk >= 1, "grow_chunk", "an integer >= 1")
-        need(self.grow_min_distance >= 0, "grow_min_distance", ">= 0")
-        need(self.grow_min_sigma >= 0, "grow_min_sigma", ">= 0")
-        need(self.grow_cell > 0, "grow_cell", "> 0")
         need(0 <= self.grow_max_fraction <= 1, "grow_max_fraction", "a value in [0, 1]")
-        need(0 < self.hole_share <= 1, "hole_share", "a value in (0, 1]")
         need(0 <= self.prune_threshold < 1, "prune_threshold", "a value in [0, 1)")
-        need(self.prune_max_fraction is None or 0 <= self.prune_max_fraction <= 1, "prune_max_fraction",
-             "None or a value in [0, 1]")
         need(self.outlier_neighbors >= 2, "outlier_neighbors", "an integer >= 2")
-        need(self.outlier_std_ratio > 0, "outlier_std_ratio", "> 0")
         need(self.outlier_min_ratio >= 0, "outlier_min_ratio", ">= 0")
         need(self.outlier_keep_confidence is None or 0 < self.outlier_keep_confidence <= 1,
              "outlier_keep_confidence", "None or a value in (0, 1]")
-        need(self.min_points >= 1, "min_points", "an integer >= 1")
-        need(self.capacity_headroom >= 1, "capacity_headroom", ">= 1")
 
     def replace(self, **changes) -> RoundConfig:
         return dataclasses.replace(self, **changes)
@@ -268,8 +254,8 @@ def grow_points(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene:
     for s in range(0, n + pad, chunk):
         part = jax.tree_util.tree_map(operator.itemgetter(slice(s, s + chunk)), padded)
         out, scene = until_complete(
-            scene, lambda sc, part=part: scan_growth(render_cfg, params, sc, part, background, cfg.grow_min_distance,
-                                                      cfg.grow_min_sigma), lost_of, max_grow)
+            scene, lambda sc, part=part: scan_growth(render_cfg, params, sc, part, background, GROW_MIN_DISTANCE,
+                                                      GROW_MIN_SIGMA), lost_of, max_grow)
         lost += lost_of(out)
         parts.append(jax.device_get({k: v for k, v in out.items() if k not in ("lost", "render_lost")}))
     scan = {k: np.concatenate([p[k] for p in parts])[:n] for k in parts[0]}
@@ -281,11 +267,11 @@ def grow_points(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene:
     max_new = int(np.floor(cfg.grow_max_fraction * alive))
     spacing = float(scene.tree.spacing)
     candidates = np.flatnonzero(scan["found"])
-    pick = candidates[select_growth(scan["xyz"][candidates], scan["error"][candidates], cfg.grow_cell * spacing,
+    pick = candidates[select_growth(scan["xyz"][candidates], scan["error"][candidates], GROW_CELL * spacing,
                                     max_new)]
     capacity = scene.points.capacity
     points, slots = add_points(scene.points, scan["xyz"][pick], scan["feature"][pick],
-                               headroom=cfg.capacity_headroom, ist=scan["ist"][pick] if "ist" in scan else None)
+                               headroom=CAPACITY_HEADROOM, ist=scan["ist"][pick] if "ist" in scan else None)
     if holes:
         holes["added"] = int(np.isin(pick, holes.pop("rows")).sum())
     report = {"rays": int(n), "candidates": int(found.size), "added": int(pick.size),
@@ -297,19 +283,19 @@ def grow_points(cfg: RoundConfig, render_cfg: RenderConfig, params: dict, scene:
 
 def hole_growth(cfg: RoundConfig, scene: PointScene, rays: Rays, scan: dict, views: Views) -> tuple[dict, dict]:
     """The scan with hole candidates (:func:`~ne_jax.pointcloud.holes.hole_candidates`) on the
-    ``cfg.hole_share`` highest-error rays it found nothing on; a hole candidate takes the feature (and
+    ``HOLE_SHARE`` highest-error rays it found nothing on; a hole candidate takes the feature (and
     IST) of its nearest alive point. Returns ``(scan, report)``: rays searched, candidates found, and
     ``rows`` (their ray indices, for the caller's count of what was added)."""
     error = scan["error"]
     empty = np.flatnonzero(~scan["found"])
-    count = int(np.ceil(cfg.hole_share * len(error)))
+    count = int(np.ceil(HOLE_SHARE * len(error)))
     rows = empty[np.argsort(-error[empty], kind="stable")[:count]]
     points = scene.points
     alive = np.flatnonzero(np.asarray(points.alive))
     cloud = np.asarray(points.xyz, np.float64)[alive]
     host = jax.device_get({"o": rays.origin[rows], "d": rays.direction[rows], "t": rays.target[rows, :3]})
     xyz, _, found = hole_candidates(HoleSearch(), views, host["o"], host["d"], host["t"], cloud,
-                                    cfg.grow_min_distance * float(scene.tree.spacing))
+                                    GROW_MIN_DISTANCE * float(scene.tree.spacing))
     rows = rows[found]
     scan = {k: np.array(v, copy=True) for k, v in scan.items()}
     if rows.size:
@@ -336,21 +322,11 @@ def _guarded_removal(points: PointState, remove: np.ndarray, min_points: int, wh
 
 
 def prune_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, dict]:
-    """Mark points with confidence below ``cfg.prune_threshold`` dead, at most
-    ``cfg.prune_max_fraction`` of the alive count (the least confident; ties by index), unless fewer
-    than ``cfg.min_points`` would stay alive. Returns ``(points, report)``; ``pruned_over_cap``
-    counts the points below the threshold that the cap kept."""
+    """Mark points with confidence below ``cfg.prune_threshold`` dead, unless fewer than
+    :data:`MIN_POINTS` would stay alive. Returns ``(points, report)``."""
     alive, confidence = np.asarray(points.alive), np.asarray(points.confidence)
-    low = np.flatnonzero(alive & (confidence < cfg.prune_threshold))
-    capped = {}
-    if cfg.prune_max_fraction is not None:
-        cap = int(np.floor(cfg.prune_max_fraction * alive.sum()))
-        capped["pruned_over_cap"] = max(0, low.size - cap)
-        low = low[np.argsort(confidence[low], kind="stable")[:cap]]
-    remove = np.zeros(points.capacity, bool)
-    remove[low] = True
-    points, report = _guarded_removal(points, remove, cfg.min_points, "pruned")
-    return points, {**report, **capped}
+    remove = alive & (confidence < cfg.prune_threshold)
+    return _guarded_removal(points, remove, MIN_POINTS, "pruned")
 
 
 def mean_neighbor_distance(xyz: np.ndarray, k: int) -> np.ndarray:
@@ -361,7 +337,7 @@ def mean_neighbor_distance(xyz: np.ndarray, k: int) -> np.ndarray:
 
 def denoise_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, dict]:
     """Open3D's statistical outlier removal over the alive points (``cfg.outlier_neighbors``,
-    ``cfg.outlier_std_ratio``; :func:`~ne_jax.pointcloud.neighbors.statistical_outliers`), keeping
+    ``OUTLIER_STD_RATIO``; :func:`~ne_jax.pointcloud.neighbors.statistical_outliers`), keeping
     every point whose mean neighbour distance is below ``cfg.outlier_min_ratio`` times the median
     one and, with ``cfg.outlier_keep_confidence``, every point at least that confident. Returns
     ``(points, report)``."""
@@ -370,7 +346,7 @@ def denoise_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, di
         return points, {"denoised": 0, "denoised_skipped": True,
                         "denoised_note": f"{alive.size} alive points <= outlier_neighbors={cfg.outlier_neighbors}"}
     xyz = np.asarray(points.xyz, np.float64)[alive]
-    outlier = statistical_outliers(xyz, cfg.outlier_neighbors, cfg.outlier_std_ratio)
+    outlier = statistical_outliers(xyz, cfg.outlier_neighbors, OUTLIER_STD_RATIO)
     if cfg.outlier_min_ratio > 0 and outlier.any():
         mean_dist = mean_neighbor_distance(xyz, cfg.outlier_neighbors)
         outlier &= mean_dist >= cfg.outlier_min_ratio * np.median(mean_dist)
@@ -378,7 +354,7 @@ def denoise_points(cfg: RoundConfig, points: PointState) -> tuple[PointState, di
         outlier &= np.asarray(points.confidence)[alive] < cfg.outlier_keep_confidence
     remove = np.zeros(points.capacity, bool)
     remove[alive[outlier]] = True
-    return _guarded_removal(points, remove, cfg.min_points, "denoised")
+    return _guarded_removal(points, remove, MIN_POINTS, "denoised")
 
 
 def refresh_normals(points: PointState, views: Views | None, normal_cfg: NormalConfig = NormalConfig()) -> PointState:

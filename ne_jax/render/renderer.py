@@ -56,7 +56,6 @@ from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from ne_jax.checks import stage_check, throw
-from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.devices import default_mesh, padded_size, shard_rays
 from ne_jax.geometry.capacity import BUFFERS, Capacities, Lost, LostCounts, fit_packing, grow
@@ -100,13 +99,14 @@ class RenderConfig:
     traditional point sampling" — shade each of the segment's ``s`` samples on its own and composite
     it as its own ``1/s`` sub-interval of the segment (see the module docstring)."""
 
-    pixel_samples: int = dataclasses.field(default=1, metadata={KEY_OMITS_DEFAULT: True})
+    pixel_samples: int = 1
     """Rays per pixel side: a pixel is the mean of an ``n x n`` regular grid of rays over its area
     (:func:`~ne_jax.data.rays.subpixel_offsets`), as the benchmark's ground truth is made (ray caster:
     a 2 x 2 or 3 x 3 grid; path tracer: random positions). 1: the pixel-centre ray. Rendering an image
     costs ``n**2`` times the rays that meet the scene; training keeps the batch's rays, so a batch
-    holds ``batch_size / n**2`` pixels (the photometric loss compares each pixel's mean colour).
-    Naive Plotting splats points per pixel and ignores it."""
+    holds ``batch_size / n**2`` pixels (the photometric loss compares each pixel's mean colour);
+    the training batches' grid is ``SamplerConfig.pixel_samples``. Naive Plotting splats points per
+    pixel and ignores it."""
 
     checks: bool = False
     """Runtime finiteness checks (:mod:`ne_jax.checks`): the first NaN / Inf raises

@@ -56,7 +56,6 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.numerics import safe_normalize, safe_sqrt
 from ne_jax.render.ide import integrated_dir_enc, positional_encoding
 
@@ -103,6 +102,20 @@ class Effects:
         return self.ist and self.uses_view_dir
 
 
+DENSITY_BIAS = 0.5
+"""``sigma = softplus(x + DENSITY_BIAS)``."""
+ROUGHNESS_BIAS = -1.0
+"""``roughness = softplus(x + ROUGHNESS_BIAS)``."""
+DIFFUSE_SCALE = 0.5
+"""``c = sigmoid(DIFFUSE_SCALE * diffuse + tint * specular)``."""
+RGB_PADDING = 0.001
+"""Colour range widening: ``c (1 + 2 p) - p`` (released code)."""
+VIEW_PE_FREQS = 4
+"""Frequencies of the view-direction encoding of the traditional head."""
+BACKGROUND_PE_FREQS = 4
+"""Frequencies of the encoding of the background-sphere point."""
+
+
 @dataclasses.dataclass(frozen=True)
 class ShadingConfig:
     """Static colour-model settings (docs/design.md facts by default)."""
@@ -113,30 +126,16 @@ class ShadingConfig:
     """Width of the trunk and of the first hidden layer of the specular MLP."""
     head_width: int = 16
     """Hidden width of the two-layer heads (predicted normal, diffuse)."""
-    diffuse_widths: tuple[int, ...] | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
-    """Hidden widths of the diffuse head; ``None``: ``(head_width,)``, the released code's."""
     bottleneck_dim: int = 128
     """Bottleneck feature fed to the specular MLP."""
     ide_degree: int = 5
     """IDE degree (5 -> 72 dims)."""
     specular_widths: tuple[int, ...] = (48, 16)
     """Hidden widths of the specular MLP (output 3)."""
-    density_bias: float = 0.5
-    """``sigma = softplus(x + density_bias)``."""
-    roughness_bias: float = -1.0
-    """``roughness = softplus(x + roughness_bias)``."""
-    diffuse_scale: float = 0.5
-    """``c = sigmoid(diffuse_scale * diffuse + tint * specular)``."""
-    rgb_padding: float = 0.001
-    """Colour range widening: ``c (1 + 2 p) - p`` (released code)."""
-    view_pe_freqs: int = 4
-    """Frequencies of the view-direction encoding of the traditional head."""
     traditional_widths: tuple[int, ...] = (48, 16)
     """Hidden widths of the traditional colour MLP."""
     background_radius: float = 4.0
     """Radius of the background sphere centred at the origin (released code: 4)."""
-    background_pe_freqs: int = 4
-    """Frequencies of the encoding of the sphere point."""
     background_widths: tuple[int, ...] = (64, 32)
     """Hidden widths of the background-sphere MLP."""
     effects: Effects = Effects()
@@ -215,7 +214,7 @@ class SegmentShader(nn.Module):
     def __call__(self, feature, normal, view_dir, ist, pred_normal_mix=None) -> ShadeOut:
         cfg, fx = self.cfg, self.cfg.effects
         h = Trunk(cfg.trunk_width, name="trunk")(feature)
-        sigma = jax.nn.softplus(nn.Dense(1, name="density")(h)[..., 0] + cfg.density_bias)
+        sigma = jax.nn.softplus(nn.Dense(1, name="density")(h)[..., 0] + DENSITY_BIAS)
         pred_normal = safe_normalize(MLP((cfg.head_width,), 3, name="normal")(h))
 
         d = None
@@ -223,18 +222,17 @@ class SegmentShader(nn.Module):
             d = safe_normalize(redirect(ist, view_dir) if fx.ist else view_dir)
 
         if fx.color_head == "traditional":
-            x = jnp.concatenate([h, positional_encoding(d, cfg.view_pe_freqs)], axis=-1)
-            rgb = _pad_sigmoid(MLP(cfg.traditional_widths, 3, name="traditional")(x), cfg.rgb_padding)
+            x = jnp.concatenate([h, positional_encoding(d, VIEW_PE_FREQS)], axis=-1)
+            rgb = _pad_sigmoid(MLP(cfg.traditional_widths, 3, name="traditional")(x), RGB_PADDING)
             return ShadeOut(sigma=sigma, rgb=rgb, pred_normal=pred_normal)
 
-        widths = (cfg.head_width,) if cfg.diffuse_widths is None else cfg.diffuse_widths
-        linear = cfg.diffuse_scale * MLP(widths, 3, name="diffuse")(h)
+        linear = DIFFUSE_SCALE * MLP((cfg.head_width,), 3, name="diffuse")(h)
         if not fx.specular:
-            return ShadeOut(sigma=sigma, rgb=_pad_sigmoid(linear, cfg.rgb_padding),
+            return ShadeOut(sigma=sigma, rgb=_pad_sigmoid(linear, RGB_PADDING),
                             pred_normal=pred_normal)
 
         tint = jax.nn.sigmoid(nn.Dense(3, name="tint")(h))
-        roughness = jax.nn.softplus(nn.Dense(1, name="roughness")(h)[..., 0] + cfg.roughness_bias)
+        roughness = jax.nn.softplus(nn.Dense(1, name="roughness")(h)[..., 0] + ROUGHNESS_BIAS)
         bottleneck = nn.elu(nn.Dense(cfg.bottleneck_dim, name="bottleneck")(h))
         if fx.point_normals:
             n = safe_normalize(redirect(ist, normal) if fx.ist else normal)
@@ -247,7 +245,7 @@ class SegmentShader(nn.Module):
         n_dot_d = jnp.sum(n * d, axis=-1, keepdims=True)
         specular = MLP(cfg.specular_widths, 3, name="specular")(
             jnp.concatenate([bottleneck, enc, n_dot_d], axis=-1))
-        rgb = _pad_sigmoid(linear + tint * specular, cfg.rgb_padding)
+        rgb = _pad_sigmoid(linear + tint * specular, RGB_PADDING)
         return ShadeOut(sigma=sigma, rgb=rgb, pred_normal=pred_normal, shading_normal=n,
                         roughness=roughness, tint=tint)
 
@@ -274,9 +272,9 @@ class BackgroundSphere(nn.Module):
     @nn.compact
     def __call__(self, origin, direction):
         u = sphere_exit_point(origin, safe_normalize(direction), self.cfg.background_radius)
-        x = positional_encoding(u, self.cfg.background_pe_freqs)
+        x = positional_encoding(u, BACKGROUND_PE_FREQS)
         raw = MLP(self.cfg.background_widths, 3, name="mlp")(x)
-        return _pad_sigmoid(raw, self.cfg.rgb_padding)
+        return _pad_sigmoid(raw, RGB_PADDING)
 
 
 def init_color_model(cfg: ShadingConfig, key: jax.Array) -> dict:

@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ne_jax.config_json import RENAMED_FIELDS
 from ne_jax.render.renderer import RenderConfig
 
 DECLARABLE: dict[str, tuple] = {"specular": ("on", "off"), "background_model": ("constant", "sphere")}
@@ -31,11 +30,6 @@ DECLARABLE: dict[str, tuple] = {"specular": ("on", "off"), "background_model": (
 
 ALL_ON = {"specular": "on", "background_model": "sphere"}
 """``--effects all``: every declarable effect on."""
-
-RENAMED = RENAMED_FIELDS["ne_jax.render.shading:Effects"]
-"""Effect names a ``scene.json`` written by an older ne_jax may use -> their name now (the declarable
-effects are named as their :class:`~ne_jax.render.shading.Effects` fields)."""
-
 
 class EffectsError(ValueError):
     """A bad effects declaration: names where it came from, what was expected and what was found."""
@@ -77,8 +71,7 @@ def scene_effects(scene_dir) -> dict[str, str] | None:
         return None
     if not isinstance(declared, dict):
         raise EffectsError(f"{path}: expected \"effects\" to be an object of name: value, found {declared!r}")
-    names = {name: RENAMED.get(name, name) for name in declared}
-    return {names[name]: _value(names[name], value, str(path)) for name, value in declared.items()}
+    return {name: _value(name, value, str(path)) for name, value in declared.items()}
 
 
 def effects_of(render: RenderConfig) -> dict[str, str]:

@@ -59,7 +59,7 @@ from ne_jax.train.model import (
     _write_rest,
     saved_capacities,
 )
-from ne_jax.train.run import CONFIG_FILE, InitConfig, RunConfig
+from ne_jax.train.run import CONFIG_FILE, INIT_CAPACITY_HEADROOM, InitConfig, RunConfig
 from ne_jax.train.sampler import build_pool, sample_batch
 from ne_jax.train.state import init_train_state
 from ne_jax.train.step import make_train_step
@@ -123,7 +123,7 @@ def initial_points(run: RunConfig, cloud: InitialCloud, views: Views, key: jax.A
     """The cloud as a :class:`PointState` with Open3D normals, random features, confidence 0.5 and
     capacity ``ceil(N * headroom)``."""
     normals = estimate_normals(run.normals, cloud.xyz, views)
-    capacity = max(int(math.ceil(len(cloud) * run.init.capacity_headroom)), 1)
+    capacity = max(int(math.ceil(len(cloud) * INIT_CAPACITY_HEADROOM)), 1)
     return PointState.from_numpy(cloud.xyz, capacity, run.render.shading.feature_dim, normal=normals, key=key)
 
 
@@ -226,7 +226,8 @@ def _check_resume_config(run_dir: Path, run: RunConfig) -> None:
 
 def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume: bool = True,
           progress: bool = True, log: Callable[[str], None] = print, stop_after_epoch: int | None = None,
-          split: SceneSplit | None = None, start: StartFrom | None = None, notes: dict | None = None) -> TrainedModel:
+          split: SceneSplit | None = None, start: StartFrom | None = None, notes: dict | None = None,
+          log_every: int = 25) -> TrainedModel:
     """Train a model of the scene in ``scene_dir`` (NeRF Synthetic layout, ``train`` split).
 
     Args:
@@ -242,6 +243,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         start: begin from this model instead of ``run.init``'s cloud (ignored when resuming).
         notes: recorded in ``metrics.json`` as ``notes`` (e.g. why the run declares its effects,
             :func:`~ne_jax.train.effects.declare_effects`); a resume keeps the first run's.
+        log_every: steps between progress-bar updates (each reads the metrics back from the device).
 
     Raises:
         DataError / ValueError: a bad scene folder (named), masks without foreground, a bad config.
@@ -331,7 +333,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
                     metrics.append(m)
                     if (i + 1) % INFLIGHT_STEPS == 0:
                         jax.block_until_ready(m["loss/total"])
-                    if (i + 1) % run.log_every == 0 or i + 1 == step0 + run.steps_per_epoch:
+                    if (i + 1) % log_every == 0 or i + 1 == step0 + run.steps_per_epoch:
                         last = jax.device_get({"loss": m["loss/total"], "psnr": m["psnr"]})
                         bar.set_postfix(epoch=epoch, loss=f"{float(last['loss']):.4f}",
                                         psnr=f"{float(last['psnr']):.1f}")
@@ -364,8 +366,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
             history.append(record)
             save_checkpoint(ckpt_dir, state, state.point_state(scene.points), run.train, run.render,
                             extra=_json_safe({"history": history, "initial_cloud": initial, "notes": notes or {},
-                                              "capacities": dataclasses.asdict(scene.capacities)}),
-                            keep=run.checkpoint_keep)
+                                              "capacities": dataclasses.asdict(scene.capacities)}))
             _write_metrics(run_dir, scene_dir, initial, history, notes or {})
             log(_epoch_line(record))
             if stop_after_epoch is not None and epoch >= stop_after_epoch:

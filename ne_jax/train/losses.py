@@ -41,13 +41,18 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jax import lax
 
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import RenderOut, SegmentAux
 
 TERMS = ("photometric", "orientation", "normal", "confidence", "sparsity", "ist_orthogonality")
 """Names of the loss terms, in the order they are reported."""
+
+
+CONFIDENCE_EPS = 1e-3
+"""Clip of the confidence regulariser: no push beyond ``[eps, 1 - eps]``."""
+SPARSITY_SCALE = 0.5
+"""``s`` of the Cauchy sparsity term ``log(1 + tau^2 / s)``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,22 +75,10 @@ class LossConfig:
     ist_orthogonality: float = 0.0
     """Weight of ``mean_alive |IST^T IST - I|_F^2``, which keeps trainable ISTs rotations (fine-tuning
     with ``TrainConfig.train_ist``; 0 otherwise: the term is then not computed)."""
-    confidence_eps: float = 1e-3
-    """Clip of the confidence regulariser: no push beyond ``[eps, 1 - eps]``."""
-    sparsity_scale: float = 0.5
-    """``s`` of ``log(1 + tau^2 / s)``."""
-    stop_weight_gradient: bool = False
-    """Stop the gradient through the compositing weights in the orientation and normal losses (they
-    then shape only normals and confidences, not densities). Ref-NeRF does not stop it."""
-
     def __post_init__(self):
         for name in TERMS:
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"LossConfig.{name}: expected a weight >= 0, found {getattr(self, name)}")
-        if not 0.0 < self.confidence_eps < 0.5:
-            raise ValueError(f"LossConfig.confidence_eps: expected a value in (0, 0.5), found {self.confidence_eps}")
-        if not self.sparsity_scale > 0.0:
-            raise ValueError(f"LossConfig.sparsity_scale: expected > 0, found {self.sparsity_scale}")
 
     def weights(self) -> dict[str, float]:
         """``{term: weight}`` of the enabled (non-zero weight) terms, in :data:`TERMS` order."""
@@ -100,16 +93,11 @@ def photometric_loss(rgb: jax.Array, target: jax.Array) -> jax.Array:
     return jnp.mean(jnp.square(rgb - target))
 
 
-def _seen(weights: jax.Array, stop: bool) -> jax.Array:
-    return lax.stop_gradient(weights) if stop else weights
-
-
-def orientation_loss(aux: SegmentAux, stop_weight_gradient: bool = False) -> jax.Array:
+def orientation_loss(aux: SegmentAux) -> jax.Array:
     """``mean_r sum_i w_i max(0, p_i . d)^2`` (``aux`` fields ``[R, M, ...]``)."""
     n_dot_d = jnp.sum(aux.pred_normal * aux.view_dir, axis=-1)
     per_seg = jnp.square(jnp.maximum(n_dot_d, 0.0))
-    w = _seen(aux.weights, stop_weight_gradient)
-    return jnp.mean(jnp.sum(jnp.where(aux.valid, w * per_seg, 0.0), axis=-1))
+    return jnp.mean(jnp.sum(jnp.where(aux.valid, aux.weights * per_seg, 0.0), axis=-1))
 
 
 def normal_mismatch(aux: SegmentAux) -> jax.Array:
@@ -122,13 +110,12 @@ def normal_mismatch(aux: SegmentAux) -> jax.Array:
     return jnp.maximum(trace - quad, 0.0)
 
 
-def normal_loss(aux: SegmentAux, stop_weight_gradient: bool = False) -> jax.Array:
+def normal_loss(aux: SegmentAux) -> jax.Array:
     """Confidence-weighted predicted-vs-point normal loss ``mean_r sum_i w_i mismatch_i``."""
-    w = _seen(aux.weights, stop_weight_gradient)
-    return jnp.mean(jnp.sum(jnp.where(aux.valid, w * normal_mismatch(aux), 0.0), axis=-1))
+    return jnp.mean(jnp.sum(jnp.where(aux.valid, aux.weights * normal_mismatch(aux), 0.0), axis=-1))
 
 
-def confidence_loss(conf_logit: jax.Array, alive: jax.Array, eps: float = 1e-3) -> jax.Array:
+def confidence_loss(conf_logit: jax.Array, alive: jax.Array, eps: float = CONFIDENCE_EPS) -> jax.Array:
     """``mean_alive [log c' + log(1 - c') - log(eps (1 - eps))]``, ``c' = clip(c, eps, 1 - eps)``,
     computed on the logit (``conf_logit``, ``alive`` ``[C]``); 0 when nothing is alive."""
     bound = math.log((1.0 - eps) / eps)
@@ -139,7 +126,7 @@ def confidence_loss(conf_logit: jax.Array, alive: jax.Array, eps: float = 1e-3) 
     return jnp.sum(per_point) / jnp.maximum(jnp.sum(alive), 1).astype(per_point.dtype)
 
 
-def sparsity_loss(aux: SegmentAux, scale: float = 0.5) -> jax.Array:
+def sparsity_loss(aux: SegmentAux, scale: float = SPARSITY_SCALE) -> jax.Array:
     """``mean_r sum_i log(1 + tau_i^2 / scale)`` over rendered segments, ``tau = sigma * len``."""
     tau = jnp.where(aux.valid, aux.sigma * aux.lengths, 0.0)
     return jnp.mean(jnp.sum(jnp.log1p(jnp.square(tau) / scale), axis=-1))
@@ -163,13 +150,13 @@ def loss_terms(cfg: LossConfig, out: RenderOut, aux: SegmentAux, target: jax.Arr
     if "photometric" in enabled:
         terms["photometric"] = photometric_loss(out.rgb, target)
     if "orientation" in enabled:
-        terms["orientation"] = orientation_loss(aux, cfg.stop_weight_gradient)
+        terms["orientation"] = orientation_loss(aux)
     if "normal" in enabled:
-        terms["normal"] = normal_loss(aux, cfg.stop_weight_gradient)
+        terms["normal"] = normal_loss(aux)
     if "confidence" in enabled:
-        terms["confidence"] = confidence_loss(points.conf_logit, points.alive, cfg.confidence_eps)
+        terms["confidence"] = confidence_loss(points.conf_logit, points.alive)
     if "sparsity" in enabled:
-        terms["sparsity"] = sparsity_loss(aux, cfg.sparsity_scale)
+        terms["sparsity"] = sparsity_loss(aux)
     if "ist_orthogonality" in enabled:
         terms["ist_orthogonality"] = ist_orthogonality_loss(points.ist, points.alive)
     return terms

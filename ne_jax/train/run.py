@@ -24,6 +24,11 @@ INIT_SOURCES = ("auto", "carving", "sfm", "ply", "ground_truth")
 CONFIG_FILE = "config.json"
 
 
+INIT_CAPACITY_HEADROOM = 1.5
+"""A run's initial point capacity is ``ceil(N * INIT_CAPACITY_HEADROOM)`` for ``N`` initial points:
+room for growth before a re-allocation."""
+
+
 @dataclasses.dataclass(frozen=True)
 class InitConfig:
     """Where the initial cloud comes from (hashable)."""
@@ -39,16 +44,11 @@ class InitConfig:
     carve: CarveConfig = CarveConfig(bounds=((-1.1,) * 3, (1.1,) * 3), resolution=128, num_points=20_000)
     """Carving settings (the benchmark's objects lie in ``[-1, 1]^3``, and a capture is brought there:
     :mod:`ne_jax.data.scene`). ``carve.num_points`` is also the size a sparse SfM start is densified to."""
-    capacity_headroom: float = 1.5
-    """Initial capacity ``ceil(N * headroom)``: room for growth before a re-allocation."""
-
     def __post_init__(self):
         if self.source not in INIT_SOURCES:
             raise ValueError(f"InitConfig.source: expected one of {INIT_SOURCES}, found {self.source!r}")
         if self.source == "ply" and not self.ply_path:
             raise ValueError("InitConfig.ply_path: expected a PLY file for source='ply', found None")
-        if not self.capacity_headroom >= 1:
-            raise ValueError(f"InitConfig.capacity_headroom: expected >= 1, found {self.capacity_headroom}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,9 +81,6 @@ class RunConfig:
     background: str = "white"
     """The colour behind the object in training and evaluation (``"white"``, ``"black"``)."""
     seed: int = 0
-    checkpoint_keep: int = 3
-    log_every: int = 25
-    """Steps between progress-bar updates (each reads the metrics back from the device)."""
     capacities: Capacities = dataclasses.field(default=Capacities(), metadata={BUFFER_SIZES: True})
     """The buffer sizes the run starts with (traversal frontier and slots, packing budget): not a
     setting, so not in the run's key; grown when a batch loses segments, and the sizes in use are
@@ -126,9 +123,8 @@ class RunConfig:
     @property
     def train_render(self) -> RenderConfig:
         """The render config of the training step and its batches: :attr:`render` (what images are
-        rendered with) on the training batches' grid, ``sampler.pixel_samples`` where it is set."""
-        own = self.sampler.pixel_samples
-        return self.render if own is None else self.render.replace(pixel_samples=int(own))
+        rendered with) on the training batches' grid, ``sampler.pixel_samples``."""
+        return self.render.replace(pixel_samples=int(self.sampler.pixel_samples))
 
     @property
     def schedule_spans_run(self) -> bool:
@@ -142,19 +138,17 @@ class RunConfig:
 
     @classmethod
     def tiny(cls, **changes) -> RunConfig:
-        """The demo: 64 px tiny benchmark scenes, a few minutes per model on one CPU core. K = 16
-        of 16 candidates, s = 2, 3 and 6 x 125 steps: the pick of the accuracy-vs-time training study
-        over the four benchmark scenes (docs/studies/accuracy_vs_time.md, part 3). A pixel is the mean
-        of 2 x 2 rays, as the benchmark's ground truth is area-averaged; the rays per training batch
-        stay 1024 (docs/rendering.md, "Pixels: one ray or a grid"). The density gate with confidences
-        learning at ten times the rate, and denoising that spares confident points: about 1 dB on
-        both benchmarks, stool's foot ring kept (docs/studies/training.md, "Confidences that move the
-        density")."""
+        """The demo: 64 px tiny benchmark scenes, minutes per model on one CPU core. K = 16 of 16
+        candidates, s = 2, 3, 4 and 6 x 125 steps (the accuracy-vs-time study's pick). A pixel is the
+        mean of 2 x 2 rays in training and in images, as the benchmark's ground truth is area-averaged;
+        the density gate with confidences learning at ten times the rate, and denoising that spares
+        confident points (docs/decisions.md)."""
         render = RenderConfig(kdtree=KDTreeConfig(candidate_min=16, knn_k=16, num_render_levels=2, density_falloff=1.0),
                               quadrature=QuadratureConfig(samples_per_level=(2, 3, 4)), chunk=1024,
                               pixel_samples=2)
         base = cls(name="tiny", render=render, capacities=Capacities(frontier=32, max_segments=32),
-                   sampler=SamplerConfig(batch_size=1024), train=TrainConfig(lr=5e-3, confidence_lr=10.0),
+                   sampler=SamplerConfig(batch_size=1024, pixel_samples=2),
+                   train=TrainConfig(lr=5e-3, confidence_lr=10.0),
                    rounds=RoundConfig(grow_rays=4096, outlier_keep_confidence=0.5),
                    epochs=6, steps_per_epoch=125, round_epochs=(2, 4))
         return base.with_schedule().replace(**changes)
@@ -162,16 +156,11 @@ class RunConfig:
     @classmethod
     def default(cls, **changes) -> RunConfig:
         """The benchmark's ``default`` preset (200 px scenes), sized to train in about an hour on one
-        CPU core: K = 16 of 32 candidates, 2 rendering levels, s = 4, 6 (the paper's per-sample
-        settings, ``RenderConfig()``, cost about 4x the time per step; see
-        docs/studies/accuracy_vs_time.md). The tree is walked in two passes, 16 nodes wide and then
-        64 for at most a quarter of the rays: on the benchmark's glossy scene this trains the same model bit for
-        bit as one 64-wide pass, in 0.885x the time. The boxes' margins are 1.5x the tree's default (0.87
-        point spacings at the bottom rendering level): narrower ones let rays pass between the boxes of
-        a sparse part of the surface and show the far side (docs/benchmark.md, "see-through"). It trains on
-        pixel centres and renders its images with 2 x 2 rays per pixel: trained at 2 x 2 (the same rays per
-        batch, a quarter of the pixels) the glossy scene gains 0.1 dB, rendered at 2 x 2 it gains 0.9-1.4
-        dB (docs/rendering.md, "Pixels: one ray or a grid")."""
+        CPU core: K = 16 of 32 candidates, 2 rendering levels, s = 4, 6, 8. The tree is walked in two
+        passes, 16 nodes wide and then 64 for at most a quarter of the rays (the same model as one
+        64-wide pass, in less time); the boxes' margins are 1.5x the tree's default, so rays do not
+        pass between the boxes of a sparse part of the surface. It trains on pixel centres and renders
+        its images with 2 x 2 rays per pixel (docs/decisions.md, docs/rendering.md)."""
         render = RenderConfig(kdtree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2, margin_factor=1.5),
                               quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), pixel_samples=2)
         base = cls(name="default", render=render, capacities=Capacities(first_pass_frontier=16, retry_share=0.25),
@@ -183,9 +172,8 @@ class RunConfig:
     @classmethod
     def paper(cls, **changes) -> RunConfig:
         """The paper's settings: 4096 rays per batch, the fixed 21-level tree, lr 2e-3, rounds after
-        epochs 4-12 (a GPU-sized run). 64 segment slots a ray: at 21 levels a ray finds more, smaller
-        voxels (with 32, 1.9% of a training batch's rays on the benchmark's glossy cloud filled every
-        slot)."""
+        epochs 4-12 (a GPU-sized run); 64 segment slots a ray, as a ray meets more, smaller voxels at
+        21 levels."""
         base = cls(name="paper", render=RenderConfig(kdtree=KDTreeConfig(depth=21)),
                    capacities=Capacities(max_segments=64),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),

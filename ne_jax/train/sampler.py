@@ -29,7 +29,6 @@ import numpy as np
 from flax import struct
 from scipy import ndimage
 
-from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.data.nerf_synthetic import SceneSplit, composite, parse_background
 from ne_jax.data.rays import Rays, rays_through_pixels, subpixel_offsets
 
@@ -53,14 +52,13 @@ class SamplerConfig:
     """For a capture (any layout but NeRF Synthetic): ``near``/``far`` are replaced by the envelope
     of the cameras' near/far from its SfM points (:func:`ne_jax.data.scene.scene_near_far`) when a
     run starts, and the run's ``config.json`` holds the values used. ``False``: the values above."""
-    pixel_samples: int | None = dataclasses.field(default=None, metadata={KEY_OMITS_DEFAULT: True})
-    """Rays per pixel side of the training batches; ``None``: the render config's ``pixel_samples``
-    (:attr:`~ne_jax.train.run.RunConfig.train_render`). ``1`` with a render grid of 2 trains on
-    pixel centres and renders its images on the grid (the ``default`` preset)."""
+    pixel_samples: int = 1
+    """Rays per pixel side of the training batches (:attr:`~ne_jax.train.run.RunConfig.train_render`;
+    ``RenderConfig.pixel_samples`` is the images' grid): 1 trains on pixel centres."""
 
     def __post_init__(self):
-        if self.pixel_samples is not None and int(self.pixel_samples) < 1:
-            raise ValueError(f"SamplerConfig.pixel_samples: expected None or rays per pixel side >= 1, "
+        if int(self.pixel_samples) < 1:
+            raise ValueError(f"SamplerConfig.pixel_samples: expected rays per pixel side >= 1, "
                              f"found {self.pixel_samples}")
         if int(self.batch_size) < 1:
             raise ValueError(f"SamplerConfig.batch_size: expected an integer >= 1, found {self.batch_size}")

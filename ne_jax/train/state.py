@@ -19,11 +19,14 @@ import numpy as np
 import optax
 from flax import struct
 
-from ne_jax.config_json import KEY_OMITS_DEFAULT
 from ne_jax.geometry.points import PointState
 from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import init_color_model
 from ne_jax.train.losses import LossConfig
+
+LR_FINAL_FRACTION = 0.01
+"""Floor of the cosine decay as a fraction of ``TrainConfig.lr`` (``alpha`` of
+``optax.cosine_decay_schedule``; our choice, docs/design.md says only "cosine decay")."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,16 +39,7 @@ class TrainConfig:
     """Adam's peak learning rate (docs/design.md facts: 2e-3)."""
     total_steps: int = 100_000
     """Steps of the cosine decay; the rate stays at its floor afterwards."""
-    lr_final_fraction: float = 0.01
-    """Floor of the cosine decay as a fraction of ``lr`` (``alpha`` of ``optax.cosine_decay_schedule``;
-    our choice, docs/design.md says only "cosine decay")."""
-    adam_b1: float = 0.9
-    """Adam's first-moment decay."""
-    adam_b2: float = 0.999
-    """Adam's second-moment decay."""
-    adam_eps: float = 1e-8
-    """Adam's epsilon."""
-    confidence_lr: float = dataclasses.field(default=1.0, metadata={KEY_OMITS_DEFAULT: True})
+    confidence_lr: float = 1.0
     """Multiplier of the learning rate of the confidence logits (Adam's steps of ``conf_logit`` are
     scaled by it). With a density gate (``KDTreeConfig.density_falloff``) the confidences move the
     density, and a larger rate lets them reach the pruning threshold within a short schedule; 1:
@@ -59,20 +53,17 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.lr: expected > 0, found {self.lr}")
         if int(self.total_steps) < 1:
             raise ValueError(f"TrainConfig.total_steps: expected an integer >= 1, found {self.total_steps}")
-        if not 0.0 <= self.lr_final_fraction <= 1.0:
-            raise ValueError("TrainConfig.lr_final_fraction: expected a value in [0, 1], "
-                             f"found {self.lr_final_fraction}")
         if not self.confidence_lr > 0:
             raise ValueError(f"TrainConfig.confidence_lr: expected > 0, found {self.confidence_lr}")
 
     def schedule(self) -> optax.Schedule:
-        """Learning rate by step: cosine decay from ``lr`` to ``lr * lr_final_fraction``."""
-        return optax.cosine_decay_schedule(self.lr, int(self.total_steps), alpha=self.lr_final_fraction)
+        """Learning rate by step: cosine decay from ``lr`` to ``lr * LR_FINAL_FRACTION``."""
+        return optax.cosine_decay_schedule(self.lr, int(self.total_steps), alpha=LR_FINAL_FRACTION)
 
     def optimizer(self) -> optax.GradientTransformation:
         """Adam with :meth:`schedule` on ``{"params": ..., "points": ...}``, the confidence logits'
         steps scaled by :attr:`confidence_lr`."""
-        adam = optax.adam(self.schedule(), b1=self.adam_b1, b2=self.adam_b2, eps=self.adam_eps)
+        adam = optax.adam(self.schedule())  # optax's b1 0.9, b2 0.999, eps 1e-8
         if self.confidence_lr == 1.0:
             return adam
         k = self.confidence_lr

@@ -204,19 +204,29 @@ from concurrent.futures import ThreadPoolExecutor  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from ne_jax.geometry.kdtree import KDTree, KDTreeConfig, tree_depth  # noqa: E402
+from ne_jax.geometry.kdtree import (  # noqa: E402
+    FALLBACK_SPACING,
+    MARGIN_GROWTH_CAP,
+    STAT_SAMPLES,
+    STAT_SEED,
+    VALIDITY_FLOOR_FACTOR,
+    VALIDITY_STD_FACTOR,
+    KDTree,
+    KDTreeConfig,
+    tree_depth,
+)
 
 
 def _ref_level_margin_growth(cfg: KDTreeConfig, slots: int) -> float:
     k = 1.0 if slots <= 2**cfg.num_render_levels else 2.0
-    return float(np.clip(math.sqrt(k * slots / 2.0), 1.0, cfg.margin_growth_cap))
+    return float(np.clip(math.sqrt(k * slots / 2.0), 1.0, MARGIN_GROWTH_CAP))
 
 
 def _ref_spacing_and_limit(x: np.ndarray, kd: cKDTree, cfg: KDTreeConfig) -> tuple[float, float]:
     """Mean nearest-neighbour distance and the validity threshold ``lim`` (see the config)."""
     n = x.shape[0]
-    rng = np.random.default_rng(cfg.seed)
-    sample = x if n <= cfg.stat_samples else x[rng.choice(n, cfg.stat_samples, replace=False)]
+    rng = np.random.default_rng(STAT_SEED)
+    sample = x if n <= STAT_SAMPLES else x[rng.choice(n, STAT_SAMPLES, replace=False)]
     kv = min(int(1.05 * cfg.num_candidates + 1.5), n)
     kq = max(kv, 2) if n >= 2 else 1
     dist, _ = kd.query(sample, k=kq, workers=-1)
@@ -224,10 +234,10 @@ def _ref_spacing_and_limit(x: np.ndarray, kd: cKDTree, cfg: KDTreeConfig) -> tup
     spacing = float(np.mean(dist[:, 1])) if n >= 2 else 0.0
     if not spacing > 0.0:
         extent = float(np.max(x.max(axis=0) - x.min(axis=0))) if n >= 2 else 0.0
-        spacing = extent / n ** (1.0 / 3.0) if extent > 0 else float(cfg.fallback_spacing)
+        spacing = extent / n ** (1.0 / 3.0) if extent > 0 else FALLBACK_SPACING
     dk = dist[:, kv - 1]
-    lim = float(np.mean(dk) + cfg.validity_std_factor * np.std(dk))
-    return spacing, max(lim, cfg.validity_floor_factor * spacing)
+    lim = float(np.mean(dk) + VALIDITY_STD_FACTOR * np.std(dk))
+    return spacing, max(lim, VALIDITY_FLOOR_FACTOR * spacing)
 
 
 def _ref_check_inputs(xyz, alive) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ne_jax.geometry.kdtree import KNN_EPS_FACTOR
 from ne_jax.geometry.knn import GATE, knn_integrate, knn_interpolate
 from ne_jax.render.renderer import PointScene
 from ne_jax.render.shading import init_color_model
@@ -34,7 +35,7 @@ def _reference(state, tree, cfg, pts, nb):
     conf = 1.0 / (1.0 + np.exp(-np.asarray(state.conf_logit, np.float64)))
     feature = np.asarray(state.feature, np.float64)
     spacing = float(tree.spacing)
-    eps, scale = cfg.knn_eps_factor * spacing, FALLOFF * spacing
+    eps, scale = KNN_EPS_FACTOR * spacing, FALLOFF * spacing
     q = np.asarray(pts, np.float64)
     gate, values = np.zeros(idx.shape[:-1]), np.zeros(idx.shape[:-1] + feature.shape[1:])
     for b, s in np.ndindex(*idx.shape[:-1]):

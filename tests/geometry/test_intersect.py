@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from ne_jax.geometry import Capacities, KDTreeConfig, build_tree, grow, intersect, intersect_checked, slab_intersect
+from ne_jax.geometry.kdtree import MIN_HIT_FACTOR
 from ne_jax.numerics import safe_reciprocal, tiny
 
 from tests.mini_presets import tiny_caps, tiny_tree
@@ -40,7 +41,7 @@ def compare(tree, rays, seg, cfg, include_grow=False, max_ambiguous=0.05):
     d = np.asarray(rays.direction, np.float64)
     near = np.asarray(rays.near, np.float64)
     far = np.asarray(rays.far, np.float64)
-    min_len = cfg.min_hit_factor * float(tree.spacing)
+    min_len = MIN_HIT_FACTOR * float(tree.spacing)
     first = tree.depth - cfg.num_render_levels - (1 if include_grow else 0)
     assert int(jnp.max(seg.overflow)) == 0
     valid = np.asarray(seg.valid)

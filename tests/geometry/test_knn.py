@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from ne_jax.data.rays import Rays
 from ne_jax.geometry import KDTreeConfig, PointState, build_tree, intersect, knn_interpolate, knn_neighbors, knn_weights
+from ne_jax.geometry.kdtree import KNN_EPS_FACTOR
 
 from tests.mini_presets import tiny_tree
 
@@ -51,7 +52,7 @@ def samples_from_rays(tree, xyz, alive, cfg, s=5, n_boxes=3, n_random=24):
 def check_against_reference(state, tree, pts, node, valid, cfg, exact):
     (vals, nb) = knn_interpolate(state, tree, pts, node, cfg, exact=exact)
     xyz = np.asarray(state.xyz, np.float64)
-    eps = cfg.knn_eps_factor * float(tree.spacing)
+    eps = KNN_EPS_FACTOR * float(tree.spacing)
     P = np.asarray(pts).reshape(-1, 3)
     nodes = np.broadcast_to(np.asarray(node)[..., None], pts.shape[:-1]).reshape(-1)
     use = np.broadcast_to(np.asarray(valid)[..., None], pts.shape[:-1]).reshape(-1)

@@ -21,6 +21,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from ne_jax.geometry import build_tree, intersect, knn_interpolate
+from ne_jax.geometry.kdtree import KNN_EPS_FACTOR
 from ne_jax.geometry.knn import knn_integrate
 
 from geometry.reference import interpolate_reference, knn_reference
@@ -65,7 +66,7 @@ def check(state, tree, pts, node, use, vals, nb, integrated=None, weight=None):
     xyz = np.asarray(state.xyz, np.float64)
     alive = np.asarray(state.alive)
     conf = np.asarray(state.conf_logit, np.float64)
-    eps = CFG.knn_eps_factor * float(tree.spacing)
+    eps = KNN_EPS_FACTOR * float(tree.spacing)
     feat = np.asarray(state.feature, np.float64)
     ist = np.asarray(state.ist, np.float64)
     idx, w, ok = (np.asarray(a) for a in (nb.index, nb.weight, nb.valid))
@@ -153,7 +154,7 @@ def test_exact_mode_at_extreme_scales():
         q = (np.asarray(xyz, np.float64)[alive][:32] + rng.normal(size=(32, 3)) * float(tree.spacing)).astype(DTYPE)
         vals, nb = knn_interpolate(state, tree, jnp.asarray(q), None, CFG, exact=True)
         assert_finite((vals, nb))
-        eps = CFG.knn_eps_factor * float(tree.spacing)
+        eps = KNN_EPS_FACTOR * float(tree.spacing)
         for i in range(len(q)):
             ri, rw, gap = knn_reference(np.asarray(xyz, np.float64), alive, np.asarray(state.conf_logit, np.float64),
                                         q[i].astype(np.float64), CFG.knn_k, eps)

@@ -24,7 +24,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from ne_jax.render.ide import ide_orders, integrated_dir_enc
-from ne_jax.render.shading import Effects, ShadingConfig, init_color_model, shade
+from ne_jax.render.shading import RGB_PADDING, Effects, ShadingConfig, init_color_model, shade
 
 from render.test_ide import _scipy_ide
 
@@ -124,7 +124,7 @@ def test_shade_outputs_and_gradients_finite_at_hard_inputs(fx, feature_scale):
     args = [jnp.asarray(a, DTYPE) for a in (f, n, d, q)]
     sigma, rgb, pred = _shade(cfg, params, *args)
     assert_finite((sigma, rgb, pred))
-    p = cfg.rgb_padding
+    p = RGB_PADDING
     assert np.all(np.asarray(sigma) >= 0)
     assert np.all(np.asarray(rgb) >= -p - EPS) and np.all(np.asarray(rgb) <= 1 + p + 4 * EPS)
     length = np.linalg.norm(np.asarray(pred, np.float64), axis=-1)

@@ -27,6 +27,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from ne_jax.geometry import build_tree, intersect
+from ne_jax.geometry.kdtree import MIN_HIT_FACTOR
 
 from geometry.reference import minimal_voxels
 
@@ -92,7 +93,7 @@ def compare_to_reference(tree, rays, seg, cfg):
     d = np.asarray(rays.direction, np.float64)
     d = np.where(np.abs(d) < np.sqrt(np.finfo(DTYPE).tiny), 0.0, d)  # documented: below sqrt(tiny) = parallel
     near, far = np.asarray(rays.near, np.float64), np.asarray(rays.far, np.float64)
-    min_len = cfg.min_hit_factor * float(tree.spacing)
+    min_len = MIN_HIT_FACTOR * float(tree.spacing)
     first = tree.depth - cfg.num_render_levels
     valid = np.asarray(seg.valid)
     nodes, levels = np.asarray(seg.node), np.asarray(seg.level)

@@ -269,7 +269,7 @@ def textured_sphere():
     return Views.create(rgba[..., 3], c2w, focal, focal, size / 2, size / 2, rgb=rgba[..., :3])
 
 
-PHOTO = dataclasses.replace(CFG, resolution=32, num_points=2000, photo_iters=3, photo_tolerance=0.1)
+PHOTO = dataclasses.replace(CFG, resolution=32, num_points=2000, photo_iters=3)
 
 
 def test_photo_consistent_surface_is_kept(textured_sphere):

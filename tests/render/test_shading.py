@@ -81,18 +81,6 @@ def test_sizes_match_design_facts():
     assert p["tint"]["kernel"].shape == (48, 3) and p["roughness"]["kernel"].shape == (48, 1)
 
 
-def test_diffuse_widths_shape_the_diffuse_head_only():
-    import dataclasses
-
-    base = _params(_cfg())["shader"]
-    assert base["diffuse"]["hidden_0"]["kernel"].shape == (48, 16) and "hidden_1" not in base["diffuse"]
-    wide = _params(dataclasses.replace(_cfg(), diffuse_widths=(64, 32)))["shader"]
-    shapes = [wide["diffuse"][k]["kernel"].shape for k in ("hidden_0", "hidden_1", "out")]
-    assert shapes == [(48, 64), (64, 32), (32, 3)]
-    rest = lambda p: {k: v for k, v in p.items() if k != "diffuse"}  # noqa: E731
-    assert jax.tree_util.tree_map(jnp.shape, rest(wide)) == jax.tree_util.tree_map(jnp.shape, rest(base))
-
-
 def test_background_sphere_params_only_when_declared():
     p = _params(_cfg(background_model="sphere"))
     assert "background" in p

@@ -126,6 +126,7 @@ def test_cli_train_records_the_effects_it_used(tmp_path, capsys):
     assert "unknown effect 'shine'" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
-def test_a_scene_json_with_the_older_effect_name_still_reads(tmp_path):
+def test_a_scene_json_with_an_unknown_effect_name_is_refused(tmp_path):
     (tmp_path / "scene.json").write_text(json.dumps({"effects": {"specular": True, "background": "sphere"}}))
-    assert scene_effects(tmp_path) == {"specular": "on", "background_model": "sphere"}
+    with pytest.raises(EffectsError, match=r"scene.json: unknown effect 'background'; expected one of"):
+        scene_effects(tmp_path)

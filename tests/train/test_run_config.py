@@ -11,7 +11,7 @@ import pytest
 from ne_jax.cli import build_parser
 from ne_jax.config_json import config_key, config_to_json
 from ne_jax.train.run import PRESETS, RunConfig
-from ne_jax.train.state import TrainConfig
+from ne_jax.train.state import LR_FINAL_FRACTION, TrainConfig
 
 GOLDEN = Path(__file__).parent / "golden"
 """``<preset>.config.json``: each preset's ``config.json`` as ``train`` writes it; ``keys.json``: their
@@ -31,7 +31,7 @@ def _spans(run: RunConfig, epochs: int, steps: int) -> None:
     assert (run.epochs, run.steps_per_epoch) == (epochs, steps)
     assert run.train.total_steps == run.total_steps == epochs * steps
     lr = run.train.schedule()
-    floor = run.train.lr * run.train.lr_final_fraction
+    floor = run.train.lr * LR_FINAL_FRACTION
     assert float(lr(run.total_steps - 1)) > floor  # still decaying on the last step
     assert float(lr(run.total_steps)) == pytest.approx(floor)
 
