@@ -211,8 +211,8 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     from ne_jax.atomic import atomic_write_json
     from ne_jax.data.nerf_synthetic import load_split, parse_background
     from ne_jax.eval.views import evaluate_split
+    from ne_jax.render.driver import render_image
     from ne_jax.render.quadrature import at_test_time
-    from ne_jax.render.renderer import render_image
     from ne_jax.train.loop import train
 
     run = c.run

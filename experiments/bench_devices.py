@@ -51,7 +51,8 @@ def worker(steps: int, res: int, repeats: int) -> dict:
     from ne_jax.data.rays import Camera, camera_rays
     from ne_jax.devices import default_mesh
     from ne_jax.geometry.points import PointState
-    from ne_jax.render.renderer import PointScene, render_image
+    from ne_jax.render.driver import render_image
+    from ne_jax.render.renderer import PointScene
     from ne_jax.train import init_train_state, make_train_step
     from ne_jax.train.run import INIT_CAPACITY_HEADROOM, get_run_preset
     from ne_jax.train.sampler import Batch

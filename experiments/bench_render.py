@@ -28,7 +28,8 @@ from ne_jax.benchmark import scenes as S
 from ne_jax.data import cameras
 from ne_jax.data.rays import Camera
 from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import PointScene, RenderConfig, render_image
+from ne_jax.render.driver import render_image
+from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import init_color_model, num_params
 from ne_jax.train.run import get_run_preset
 

@@ -225,8 +225,9 @@ def render_cost(run, params, points, scene: Path, repeats: int) -> dict:
     """Test view 0 of ``scene`` rendered at test time with ``run``'s render config."""
     from ne_jax.data.nerf_synthetic import load_split, parse_background
     from ne_jax.devices import ray_mesh
+    from ne_jax.render.driver import render_image
     from ne_jax.render.quadrature import at_test_time
-    from ne_jax.render.renderer import PointScene, render_image
+    from ne_jax.render.renderer import PointScene
 
     view = load_split(scene, "test").take([0])
     cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))

@@ -170,8 +170,9 @@ def rates(run, scene: Path, steps: int, repeats: int) -> dict:
     from ne_jax.data.nerf_synthetic import load_split, parse_background
     from ne_jax.geometry.points import PointState
     from ne_jax.pointcloud.init import ground_truth_cloud
+    from ne_jax.render.driver import render_image
     from ne_jax.render.quadrature import at_test_time
-    from ne_jax.render.renderer import PointScene, render_image
+    from ne_jax.render.renderer import PointScene
     from ne_jax.train.run import INIT_CAPACITY_HEADROOM
     from ne_jax.train.sampler import build_pool
     from ne_jax.train.state import init_train_state

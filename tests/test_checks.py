@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from ne_jax.checks import NonFiniteError, checked, stage_check
-from ne_jax.render.renderer import render_chunked
+from ne_jax.render.driver import render_chunked
 from ne_jax.render.shading import init_color_model
 from ne_jax.train import make_train_step
 

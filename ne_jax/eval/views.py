@@ -1,6 +1,6 @@
 """Rendering many views, scoring a split, orbit videos and image folders (host side).
 
-* :func:`render_views` renders a list of cameras with :func:`~ne_jax.render.renderer.render_image`;
+* :func:`render_views` renders a list of cameras with :func:`~ne_jax.render.driver.render_image`;
 * :func:`evaluate_split` renders every view of a :class:`~ne_jax.data.nerf_synthetic.SceneSplit` at
   full resolution and scores it with :func:`~ne_jax.eval.metrics.psnr`,
   :func:`~ne_jax.eval.metrics.ssim` and :func:`~ne_jax.eval.metrics.lpips` against the ground truth
@@ -30,8 +30,9 @@ from ne_jax.data.nerf_synthetic import SceneSplit, composite, parse_background
 from ne_jax.data.png import write_image
 from ne_jax.data.rays import Camera
 from ne_jax.eval.metrics import LPIPS_DEFAULT_NET, LPIPS_MIN_SIZE, LPIPS_NETS, lpips, lpips_available, psnr, ssim
+from ne_jax.render.driver import render_image
 from ne_jax.render.quadrature import at_test_time
-from ne_jax.render.renderer import PointScene, RenderConfig, render_image
+from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.train.model import TrainedModel
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -104,7 +105,7 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
                    lpips_net: str | None = LPIPS_DEFAULT_NET, with_depth: bool = False) -> tuple:
     """Render every view of ``split`` at full resolution and score it.
 
-    ``image_fn``: another image renderer with :func:`~ne_jax.render.renderer.render_image`'s
+    ``image_fn``: another image renderer with :func:`~ne_jax.render.driver.render_image`'s
     arguments ``(cfg, params, scene, camera, background, near, far) -> RenderOut`` (e.g. Naive
     Plotting, :func:`~ne_jax.render.naive.naive_plot_image`); default the ray renderer (a model
     trained with the ``"stochastic"`` rule is rendered with :func:`~ne_jax.render.quadrature.at_test_time`).
@@ -122,7 +123,7 @@ def evaluate_split(cfg: RenderConfig, params: dict, scene: PointScene, split: Sc
 
     The means are of the per-view values (the NeRF papers' convention: mean PSNR, not the PSNR of
     the mean MSE). ``lost_segments``: segments the render dropped to capacities even after growing
-    them (0 for a complete render; see :func:`~ne_jax.render.renderer.render_chunked`).
+    them (0 for a complete render; see :func:`~ne_jax.render.driver.render_chunked`).
 
     ``lpips_net``: the LPIPS backbone, ``"alex"`` (default) or ``"vgg"``
     (:func:`~ne_jax.eval.metrics.lpips`); ``None`` skips LPIPS. LPIPS (per view and mean) is

@@ -31,7 +31,7 @@ from ne_jax.edit.apply import EditConfig
 from ne_jax.eval.views import save_images, write_video
 from ne_jax.morph.blend import MorphPair, morph_contexts, morph_scene_with_report, pair_models
 from ne_jax.morph.path import linear_path, morph_ratios, path_from_clouds
-from ne_jax.render.renderer import render_image
+from ne_jax.render.driver import render_image
 from ne_jax.train.model import TrainedModel
 
 

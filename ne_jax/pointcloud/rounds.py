@@ -48,8 +48,9 @@ from ne_jax.pointcloud.holes import HoleSearch, hole_candidates
 from ne_jax.pointcloud.init import Views
 from ne_jax.pointcloud.neighbors import statistical_outliers
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
+from ne_jax.render.driver import until_complete
 from ne_jax.render.quadrature import at_test_time, level_samples
-from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, until_complete
+from ne_jax.render.renderer import PointScene, RenderConfig, render_rays
 from ne_jax.render.stage import shade_samples
 
 MIN_POINTS = 64

@@ -185,7 +185,7 @@ def _naive_plot(cfg: RenderConfig, params, points: PointState, camera: Camera, b
 def naive_plot_image(cfg: RenderConfig, params: dict, scene: PointScene, camera: Camera, background,
                      near: float, far: float, splat_radius: float = DEFAULT_SPLAT_RADIUS) -> RenderOut:
     """Render ``camera`` by Naive Plotting (module docstring): the inputs and outputs of
-    :func:`~ne_jax.render.renderer.render_image`, fields image-shaped (``rgb`` ``[H, W, 3]``,
+    :func:`~ne_jax.render.driver.render_image`, fields image-shaped (``rgb`` ``[H, W, 3]``,
     ``opacity``/``depth`` ``[H, W]``, ``normal`` ``[H, W, 3]``); ``num_segments`` ``[H, W]`` counts the
     points composited in each pixel; ``lost`` is zeros (nothing is lost to a capacity).
 

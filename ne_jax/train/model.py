@@ -27,7 +27,8 @@ from ne_jax.data.rays import Camera
 from ne_jax.data.scene import SCENE_RECORD_FILE, Normalisation
 from ne_jax.geometry.capacity import Capacities
 from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import PointScene, RenderConfig, RenderOut, render_image
+from ne_jax.render.driver import render_image
+from ne_jax.render.renderer import PointScene, RenderConfig, RenderOut
 from ne_jax.train.checkpoint import load_checkpoint, save_checkpoint
 from ne_jax.train.run import CONFIG_FILE, RunConfig, load_run_config
 from ne_jax.train.state import TrainState
@@ -146,7 +147,7 @@ class TrainedModel:
         return None if None in cpu else float(sum(cpu))
 
     def render_image(self, camera: Camera, *, progress: bool = False) -> RenderOut:
-        """Render one camera's image (see :func:`~ne_jax.render.renderer.render_image`)."""
+        """Render one camera's image (see :func:`~ne_jax.render.driver.render_image`)."""
         return render_image(self.run.render, self.params, self.scene, camera, parse_background(self.background),
                             self.near, self.far, progress=progress)
 

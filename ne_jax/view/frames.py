@@ -17,8 +17,9 @@ import numpy as np
 
 from ne_jax.data.nerf_synthetic import parse_background
 from ne_jax.data.rays import Camera
+from ne_jax.render.driver import render_image
 from ne_jax.render.quadrature import at_test_time
-from ne_jax.render.renderer import RenderOut, render_image
+from ne_jax.render.renderer import RenderOut
 from ne_jax.view.edits import matrix_to_quat, quat_to_matrix
 
 MODES = ("rgb", "depth", "normals", "opacity")

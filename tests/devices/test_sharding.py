@@ -20,7 +20,7 @@ import pytest
 from ne_jax.cli import build_parser
 from ne_jax.compiles import count_compiles
 from ne_jax.devices import default_mesh, even_mesh, padded_size, ray_mesh
-from ne_jax.render.renderer import render_chunked
+from ne_jax.render.driver import render_chunked
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch
 
@@ -72,7 +72,7 @@ def scene_and_rays():
 def test_sharded_render_equals_single_device(scene_and_rays, devices, chunk, monkeypatch):
     """3 devices (odd): chunks of 25 rays padded to 27, 64 rays in three chunks, the last one padded.
     Every chunk's render is split over all the devices."""
-    import ne_jax.render.renderer as R
+    import ne_jax.render.driver as R
 
     params, scene, rays, bg = scene_and_rays
     one = render_chunked(CFG, params, scene, rays, bg, mesh=ray_mesh(1))

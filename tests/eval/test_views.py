@@ -36,7 +36,8 @@ from ne_jax.eval import (
 from ne_jax.eval import views as views_module
 from ne_jax.geometry.capacity import Lost
 from ne_jax.geometry.points import PointState
-from ne_jax.render.renderer import PointScene, render_image
+from ne_jax.render.driver import render_image
+from ne_jax.render.renderer import PointScene
 from ne_jax.render.shading import init_color_model
 
 from tests.mini_presets import mini_benchmark, tiny_render

@@ -32,9 +32,10 @@ from ne_jax.morph import (
     render_morph,
 )
 from ne_jax.pointcloud.normals import NormalConfig, estimate_normals
-from ne_jax.render import renderer
+from ne_jax.render import driver
+from ne_jax.render.driver import render_image
 from ne_jax.render.quadrature import at_test_time
-from ne_jax.render.renderer import PointScene, render_image
+from ne_jax.render.renderer import PointScene
 from ne_jax.render.shading import Effects, init_color_model, shade
 from ne_jax.train.model import TrainedModel, save_trained
 from ne_jax.train.run import RunConfig
@@ -134,9 +135,9 @@ def test_a_morph_compiles_once_and_its_frames_are_finite(models):
     path = linear_path(pair.cloud_a, pair.cloud_b, 4)
     cam = _camera(12)
     render_morph(pair, path[:1], cam, "white", 2.0, 6.0, progress=False, ratios=[0.0])  # compiles
-    before = renderer._render_chunk._cache_size()
+    before = driver._render_chunk._cache_size()
     frames, reports = render_morph(pair, path, cam, "white", 2.0, 6.0, progress=False)
-    assert renderer._render_chunk._cache_size() == before
+    assert driver._render_chunk._cache_size() == before
     assert frames.shape == (4, 12, 12, 3) and np.isfinite(frames).all()
     assert [r["ratio"] for r in reports] == pytest.approx([0, 1 / 3, 2 / 3, 1])
 

@@ -20,16 +20,9 @@ from ne_jax.devices import default_mesh
 from ne_jax.geometry.intersect import intersect
 from ne_jax.geometry.knn import knn_interpolate
 from ne_jax.geometry.points import PointState
+from ne_jax.render.driver import _render_chunk, render_chunked, render_image
 from ne_jax.render.quadrature import QuadratureConfig, level_samples, sample_intervals
-from ne_jax.render.renderer import (
-    PointScene,
-    RenderConfig,
-    _render_chunk,
-    render_chunked,
-    render_image,
-    render_rays,
-    render_rays_with_aux,
-)
+from ne_jax.render.renderer import PointScene, RenderConfig, render_rays, render_rays_with_aux
 from ne_jax.render.shading import init_color_model, shade
 from ne_jax.train import TrainConfig, init_train_state, make_train_step
 from ne_jax.train.sampler import Batch

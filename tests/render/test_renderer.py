@@ -12,13 +12,8 @@ from ne_jax.compiles import count_compiles
 from ne_jax.data import cameras
 from ne_jax.data.rays import Camera, Rays, camera_rays
 from ne_jax.geometry.capacity import Capacities
-from ne_jax.render.renderer import (
-    RenderConfig,
-    _render_chunk,
-    render_chunked,
-    render_image,
-    render_rays,
-)
+from ne_jax.render.driver import _render_chunk, render_chunked, render_image
+from ne_jax.render.renderer import RenderConfig, render_rays
 from ne_jax.render.shading import init_color_model
 
 from tests.mini_presets import tiny_render
@@ -188,7 +183,7 @@ def test_chunked_render_shades_only_the_rays_that_meet_the_cloud(setup, monkeypa
     """The first stage walks every ray; only rays with a segment reach the render, in full chunks:
     ceil(hits / chunk) render calls (one per chunk of all rays in a one-stage render), and the
     misses are the background."""
-    import ne_jax.render.renderer as R
+    import ne_jax.render.driver as R
 
     cfg, params, scene, camera, _ = setup
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
