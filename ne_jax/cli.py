@@ -81,8 +81,10 @@ def _run_config(args):
     return config_set(run.replace(background=args.background, seed=args.seed), *getattr(args, "set", []))
 
 
-def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True) -> dict:
-    """Render and score a split of ``model``; write ``out/metrics.json`` and ``out/images/*.png``."""
+def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True, views: int | None = None) -> dict:
+    """Render and score a split of ``model``; write ``out/metrics.json`` and ``out/images/*.png``.
+    ``views``: score only this many views, evenly spaced over the split, and report the time a view
+    took and the projected time of the whole split."""
     from ne_jax.atomic import atomic_write_json
     from ne_jax.data.nerf_synthetic import composite
     from ne_jax.data.scene import check_recorded_split, load_split
@@ -93,10 +95,24 @@ def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True)
     if model.run_dir is not None and model.scene_dir is not None and \
             Path(scene_dir).resolve() == Path(model.scene_dir).resolve():  # the scene it was trained on
         check_recorded_split(model.run_dir, split)
+    whole = split.num_views
+    chosen = list(range(whole))
+    if views is not None:
+        if views < 1:
+            raise ValueError(f"--views: expected at least 1 view, found {views}")
+        chosen = sorted({round(i * (whole - 1) / max(views - 1, 1)) for i in range(min(views, whole))})
+        split = split.take(chosen)
+    t0 = time.perf_counter()
     report, images, depths = evaluate_model(model, split, progress=progress, with_depth=True)
+    seconds = time.perf_counter() - t0
+    report["seconds"] = round(seconds, 2)
+    if split.num_views < whole:  # an upper bound: the first view compiles
+        per_view = seconds / split.num_views
+        report["subset"] = {"views": split.num_views, "of": whole, "seconds_per_view": round(per_view, 2),
+                            "projected_split_seconds": round(per_view * whole, 1)}
     report["regions"], labels = split_regions(split, images, model.background, depths=depths)
     truth = composite(split.images, report["background"])
-    names = [f"{i:03d}_{Path(p).name}.png" for i, p in enumerate(split.file_paths)]
+    names = [f"{i:03d}_{Path(p).name}.png" for i, p in zip(chosen, split.file_paths)]
     save_images(images, out / "images", names)
     save_images([error_map_picture(t, p, lab) for t, p, lab in zip(truth, images, labels)], out / "error_maps", names)
     atomic_write_json(out / "metrics.json", report)
@@ -108,6 +124,10 @@ def _print_eval(report: dict, out: Path) -> None:
     lpips = "" if lp is None else f", LPIPS {lp:.4f} ({report.get('lpips_net')})"
     print(f"{report['split']}: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f}{lpips} "
           f"(mean of {report['num_views']} views, background {report['background']}) -> {out}")
+    if "subset" in report:
+        sub = report["subset"]
+        print(f"  {sub['views']} of {sub['of']} views scored, {sub['seconds_per_view']} s a view (the first one "
+              f"compiling): the whole split would take at most {sub['projected_split_seconds'] / 60:.1f} min")
     if "regions" in report:  # the largest shares of the squared error first
         parts = sorted(report["regions"].items(), key=lambda kv: -kv[1]["error"])
         print("  error by region: " + ", ".join(f"{k} {100 * v['error']:.0f}% ({100 * v['pixels']:.0f}% of pixels)"
@@ -181,7 +201,7 @@ def _cmd_eval(args) -> int:
     if args.background:
         model = model.replace(run=model.run.replace(background=args.background))
     out = Path(args.out) if args.out else Path(args.run) / f"eval_{args.split}"
-    report = _evaluate(model, scene_dir, args.split, out)
+    report = _evaluate(model, scene_dir, args.split, out, views=args.views)
     _print_eval(report, out)
     return 0
 
@@ -441,6 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--split", default="test", choices=SCENE_SPLITS)
     ev.add_argument("--background", default=None, choices=["white", "black"], help="default: the run's")
     ev.add_argument("--out", default=None, help="output folder (default: RUN/eval_<split>)")
+    ev.add_argument("--views", type=int, default=None, metavar="N",
+                    help="score N views evenly spaced over the split (and project the whole split's time)")
     ev.set_defaults(func=_cmd_eval)
 
     rd = run_parser("render", "render a trained run's views or an orbit video")

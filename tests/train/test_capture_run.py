@@ -105,6 +105,14 @@ def test_a_capture_run_evaluates_renders_and_exports_in_its_own_coordinates(capt
     report, _ = evaluate_model(model, load_split(root, "test"), progress=False)
     assert np.isfinite(report["psnr"]) and report["num_views"] == 1
     assert main(["eval", str(out), "--out", str(tmp_path / "eval")]) == 0
+    # a subset of a split: views evenly spaced, named by their index in the split, the split's time projected
+    train_views = load_split(root, "train").num_views
+    assert main(["eval", str(out), "--split", "train", "--views", "2", "--out", str(tmp_path / "part")]) == 0
+    part = json.loads((tmp_path / "part" / "metrics.json").read_text())
+    assert part["num_views"] == 2 and part["subset"]["of"] == train_views
+    assert part["subset"]["projected_split_seconds"] >= part["seconds"]
+    assert sorted(p.name[:3] for p in (tmp_path / "part" / "images").iterdir()) == ["000", f"{train_views - 1:03d}"]
+    assert "the whole split would take at most" in capsys.readouterr().out
     assert main(["render", str(out), "--orbit", "2", "--out", str(tmp_path / "orbit.gif")]) == 0
     assert (tmp_path / "orbit.gif").is_file()
     assert main(["export", str(out), "--out", str(tmp_path / "cloud.ply")]) == 0
