@@ -191,6 +191,26 @@ class SceneSplit:
         return self.num_views
 
 
+def transform_frames(meta: dict, path) -> list[dict]:
+    """The ``frames`` of a transforms file's JSON ``meta`` (read from ``path``), each checked to be an
+    object with a non-empty string ``file_path`` and a ``transform_matrix`` (NeRF Synthetic and
+    nerfstudio alike); a :class:`DataError` names the frame and key otherwise."""
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise _fail(path, "frames", f"expected a non-empty list of frames, found {frames!r:.100}")
+    for i, frame in enumerate(frames):
+        where = f"frames[{i}]"
+        if not isinstance(frame, dict):
+            raise _fail(path, where, f"expected an object, found {type(frame).__name__}")
+        for key in ("file_path", "transform_matrix"):
+            if key not in frame:
+                raise _fail(path, f"{where}.{key}", f"missing key {key!r}")
+        fp = frame["file_path"]
+        if not isinstance(fp, str) or not fp:
+            raise _fail(path, f"{where}.file_path", f"expected a non-empty string, found {fp!r}")
+    return frames
+
+
 def _intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[float, float, float, float, float]:
     """``(fx, fy, cx, cy, camera_angle_x)`` in pixels at full resolution."""
     for key, size in (("w", width), ("h", height)):
@@ -239,20 +259,9 @@ def load_split(scene_dir: str | os.PathLike, split: str, downscale: int = 1) -> 
         raise _fail(path, "frames", "missing key: expected a list of frames in the top-level object")
     if "fl_x" not in meta and "camera_angle_x" not in meta:
         raise _fail(path, "camera_angle_x", _MISSING_ANGLE)
-    frames = meta["frames"]
-    if not isinstance(frames, list) or not frames:
-        raise _fail(path, "frames", f"expected a non-empty list of frames, found {frames!r:.100}")
     c2ws, file_paths, image_paths, images = [], [], [], []
-    for i, frame in enumerate(frames):
-        where = f"frames[{i}]"
-        if not isinstance(frame, dict):
-            raise _fail(path, where, f"expected an object, found {type(frame).__name__}")
-        for key in ("file_path", "transform_matrix"):
-            if key not in frame:
-                raise _fail(path, f"{where}.{key}", f"missing key {key!r}")
-        fp = frame["file_path"]
-        if not isinstance(fp, str) or not fp:
-            raise _fail(path, f"{where}.file_path", f"expected a non-empty string, found {fp!r}")
+    for i, frame in enumerate(transform_frames(meta, path)):
+        where, fp = f"frames[{i}]", frame["file_path"]
         c2ws.append(check_rigid(frame["transform_matrix"], path, f"{where}.transform_matrix"))
         image_path = _resolve_image(scene_dir, fp, path, f"{where}.file_path")
         try:

@@ -37,7 +37,7 @@ import numpy as np
 
 from ne_jax.data.capture import Capture, CaptureView, holdout_splits
 from ne_jax.data.formats._common import image_size, number, positive, read_text, zero_is_none
-from ne_jax.data.nerf_synthetic import check_rigid
+from ne_jax.data.nerf_synthetic import check_rigid, transform_frames
 from ne_jax.data.ply import PlyError, read_ply
 from ne_jax.data.png import fail
 
@@ -176,21 +176,7 @@ def read_nerfstudio(root: Path) -> Capture:
             "camera_model",
             f"unsupported camera model {model!r}: expected one of {', '.join(PERSPECTIVE_MODELS)}",
         )
-    frames = meta.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise fail(path, "frames", f"expected a non-empty list of frames, found {frames!r:.100}")
-    entries = []
-    for i, frame in enumerate(frames):
-        where = f"frames[{i}]"
-        if not isinstance(frame, dict):
-            raise fail(path, where, f"expected an object, found {type(frame).__name__}")
-        for key in ("file_path", "transform_matrix"):
-            if key not in frame:
-                raise fail(path, f"{where}.{key}", f"missing key {key!r}")
-        fp = frame["file_path"]
-        if not isinstance(fp, str) or not fp:
-            raise fail(path, f"{where}.file_path", f"expected a non-empty string, found {fp!r}")
-        entries.append((normalise(fp), i, frame))
+    entries = [(normalise(frame["file_path"]), i, frame) for i, frame in enumerate(transform_frames(meta, path))]
     entries.sort(key=lambda e: e[0])
     for (a, i, _), (b, j, _) in zip(entries, entries[1:]):
         if a == b:
