@@ -54,42 +54,6 @@ def _best_of(fn, repeats: int) -> float:
     return best
 
 
-COMPILE_PHASES = {"trace_s": "/jax/core/compile/jaxpr_trace_duration",
-                  "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
-                  "compile_s": "/jax/core/compile/backend_compile_duration"}
-"""The phases of a first call, as JAX's monitoring events name them."""
-
-
-def first_call_by_phase(fn, repeats: int) -> tuple[dict, object]:
-    """``({first_call_s, trace_s, lower_s, compile_s, best_ms}, fn's first output)``: ``fn``'s first
-    call split into its phases (:data:`COMPILE_PHASES`) and the best of ``repeats`` more calls."""
-    import collections
-
-    import jax
-    import jax.monitoring
-
-    seconds = collections.Counter()
-
-    def listener(event, duration, **kwargs):
-        seconds.update({event: duration})
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        first = time.perf_counter() - t0
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    best_ms = 1e3 * _best_of(fn, repeats)
-    return {"first_call_s": first, **{k: seconds[v] for k, v in COMPILE_PHASES.items()}, "best_ms": best_ms}, out
-
-
-def check_agree(study: str, what: str, values: list[float], rtol: float = 1e-5) -> None:
-    """Raise if ``values`` (one per setting of ``study``) differ by more than ``rtol`` of the smallest."""
-    if max(values) - min(values) > rtol * abs(min(values)):
-        raise RuntimeError(f"{study}: the settings' {what} differ: {sorted(set(values))}")
-
-
 def timed_steps(step, state, scene, batches) -> tuple:
     """Run the jitted training ``step`` over ``batches`` (the first compiles): ``(state after, s per
     step after the first, s of the first, lost)`` with ``lost`` what the steps lost to ``scene``'s
