@@ -116,9 +116,8 @@ def process_images(photos: str | os.PathLike, out: str | os.PathLike, *, matcher
     (one set of intrinsics), else COLMAP's ``AUTO`` mode (one camera per image size and EXIF
     model); ``max_image_size``: features are found on photos downscaled to this longest side
     (cameras keep the photos' full resolution); ``max_num_features``: per photo;
-    ``guided_matching``: a second matching pass guided by each verified pair's geometry (about
-    2.5x the inlier matches for about 1.6x the matching time; on the test's renders the pose
-    error barely changed, 0.37% of the scene size against 0.41% at 320 px, so it is off as in COLMAP);
+    ``guided_matching``: a second matching pass guided by each verified pair's geometry (more
+    inlier matches for more matching time; off, as in COLMAP);
     ``num_threads``: COLMAP's threads in every stage; with 1 (the default) a run is repeatable bit
     for bit (the same photos and ``seed`` give the same model files); with more, the features are
     the same but geometric verification draws its RANSAC samples in whatever order the threads take

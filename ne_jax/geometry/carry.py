@@ -2,8 +2,8 @@
 
 Rebuilding the tree after an edit re-partitions the cloud: the node boxes, the candidate sets and
 so the segments a ray is cut into all change, and the deterministic integration is not additive
-over a segment cut differently. A rigid motion of a whole trained scene then renders 24-28 dB away
-from the unedited model seen from the moved cameras (docs/editing.md, "Edit fidelity"). ``carry_tree``
+over a segment cut differently, so a rigid motion of a whole trained scene no longer renders what the
+unedited model showed from the moved cameras (docs/editing.md, "Edit fidelity"). ``carry_tree``
 keeps what the model was trained with instead:
 
 * **partition and candidate sets** are kept (node membership by index; dead points are masked by
@@ -17,9 +17,8 @@ keeps what the model was trained with instead:
   a ray is cut where the same ray was cut before the edit. Under a smooth deformation a point may
   leave its boxes by up to the fit's residual (below ``tear_factor`` spacings); the boxes are not
   grown for it, since neighbouring subtrees' voxels would then overlap and a ray would integrate
-  their density twice (measured on glossy/bend at the ``tiny`` preset: boxes grown by the residual
-  rendered 0.66 dB worse, 22.09 against 22.76 dB); the point still reaches the samples of the
-  voxels around it through their candidate sets;
+  their density twice; the point still reaches the samples of the voxels around it through their
+  candidate sets;
 * **deletions** shrink the boxes of the nodes that lost points to their alive members (plus the
   level's margin), as a rebuild would, and empty nodes are skipped;
 * **torn subtrees** (residual above ``tear_factor`` point spacings: a cut, a part moved away) are

@@ -20,9 +20,9 @@ planar cloud flat and unhittable). Boxes of one level are therefore disjoint up 
 and each box contains its children's.
 
 Built on the host (numpy + ``scipy.spatial.cKDTree``), not under ``jit``: a single level's XLA
-``argsort`` under jit (2^20 points, 0.18-0.19 s) costs more than numpy's split of that level
-(docs/decisions.md, the tree build), and the candidate sets need k-NN queries,
-where scipy's C++ tree is 10-35x faster than the JAX KNN structures measured for docs/design.md. Building
+``argsort`` under jit costs more than numpy's split of that level (docs/decisions.md, the tree
+build), and the candidate sets need k-NN queries, where scipy's C++ tree is faster than the JAX KNN
+structures measured for docs/design.md. Building
 is rare (after edits and point-cloud rounds); everything the tree feeds (``intersect``,
 ``knn_interpolate``) is jit-compiled.
 

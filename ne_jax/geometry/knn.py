@@ -166,9 +166,8 @@ def _per_candidate_weights(state: PointState, tree: KDTree, points, node, sample
     ``per_candidate[b, c] = sum_s sample_weight[b, s] * (KNN weight of sample s on candidate c)`` (0 off
     its ``k`` nearest alive candidates). Up to :data:`RANK_MAX_CANDIDATES` candidates the ``k`` nearest
     are those whose :func:`~ne_jax.numerics.stable_ranks` by distance is below ``k`` (the set
-    ``lax.top_k`` chooses), with dense weights and no gather or scatter of chosen slots (16 of 32: the
-    selection 6-9x, the integration 1.9-2.2x faster than with ``top_k``); wider sets use ``lax.top_k``
-    (32 of 96: ranking is 7x slower; docs/decisions.md). ``gate``: ``[B, 1]``, the
+    ``lax.top_k`` chooses), with dense weights and no gather or scatter of chosen slots (faster than
+    ``top_k`` for narrow sets); wider sets use ``lax.top_k`` (docs/decisions.md). ``gate``: ``[B, 1]``, the
     quadrature of the density gate with falloff ``scale`` (``None`` without one)."""
     if tree.candidates.shape[-1] > RANK_MAX_CANDIDATES:
         return _per_candidate_weights_top_k(state, tree, points, node, sample_weight, k, eps, scale)
@@ -297,9 +296,9 @@ def interpolate(neighbors: Neighbors, values: Any) -> Any:
 
 def _interpolate_shared(ci, j, weight, lead, values):
     """Per-segment path: gather each leaf at the segment's candidates once (``[B, Kc, D]``), then
-    take the chosen slots from that small block (cache-resident) for the weighted sum. Measured
-    1.2-1.7x faster than gathering ``[B, S, K, D]`` rows from the global arrays (and than a dense
-    ``[S, Kc]`` weight-matrix product) on this CPU for S=8, K=32, Kc=96, D=44."""
+    take the chosen slots from that small block (cache-resident) for the weighted sum: faster than
+    gathering ``[B, S, K, D]`` rows from the global arrays, or a dense ``[S, Kc]`` weight-matrix
+    product (docs/studies/profile.md)."""
     b_ = ci.shape[0]
     b = jnp.arange(b_)[:, None, None]
 

@@ -1,4 +1,4 @@
-"""Checkpoints: save and resume a training run exactly (issue 5 part 5; issue 8 items 4-5).
+"""Checkpoints: save and resume a training run exactly.
 
 A run directory holds one directory per checkpoint and a ``latest`` pointer::
 
