@@ -328,16 +328,14 @@ def generate_scene(scene_name: str, preset: BenchmarkPreset, root: Path, seed: i
 
 def generate_benchmark(root, preset: str | BenchmarkPreset = "tiny", scenes=None, seed: int = 0, edits=None,
                        resume: bool = False) -> dict:
-    """Generate ``scenes`` (default: all) of ``preset`` under ``root``, each with ``edits`` (default:
-    all; ``()``: only the originals; see :func:`generate_scene`, also for ``resume``); returns and
-    saves timings (``root/timings.json``)."""
+    """Generate ``scenes`` (names of scenes or of sets of them, :func:`ne_jax.benchmark.scenes.scene_names`;
+    default: the four tuning scenes) of ``preset`` under ``root``, each with ``edits`` (default: all;
+    ``()``: only the originals; see :func:`generate_scene`, also for ``resume``); returns and saves
+    timings (``root/timings.json``)."""
     preset = get_preset(preset) if isinstance(preset, str) else preset
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    names = list(S.SCENES) if scenes is None else list(scenes)
-    for n in names:
-        if n not in S.SCENES:
-            raise KeyError(f"unknown scene {n!r}; expected one of {sorted(S.SCENES)}")
+    names = S.scene_names(scenes)
     t0 = time.perf_counter()
     per_scene = {}
     for name in tqdm(names, desc=f"benchmark[{preset.name}]", unit="scene"):

@@ -38,6 +38,15 @@ class TriMesh:
     def translated(self, offset) -> TriMesh:
         return TriMesh(self.vertices + np.asarray(offset, np.float64), self.faces, self.material)
 
+    def rotated(self, axis, degrees: float, pivot=(0.0, 0.0, 0.0)) -> TriMesh:
+        """The mesh turned by ``degrees`` about the line through ``pivot`` along ``axis`` (any length > 0)."""
+        k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+        a = np.deg2rad(degrees)
+        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        rot = np.eye(3) + np.sin(a) * kx + (1.0 - np.cos(a)) * (kx @ kx)
+        pivot = np.asarray(pivot, np.float64)
+        return TriMesh((self.vertices - pivot) @ rot.T + pivot, self.faces, self.material)
+
 
 def concatenate(meshes: list[TriMesh]) -> TriMesh:
     """One mesh holding all ``meshes`` (vertex indices shifted)."""
@@ -52,6 +61,13 @@ def concatenate(meshes: list[TriMesh]) -> TriMesh:
         np.concatenate(faces).astype(np.int32),
         np.concatenate(mats).astype(np.int32),
     )
+
+
+def submesh(mesh: TriMesh, face_mask: np.ndarray) -> TriMesh:
+    """The faces of ``mesh`` where ``face_mask [F]`` is true, with only the vertices they use."""
+    faces = mesh.faces[face_mask]
+    used, inverse = np.unique(faces, return_inverse=True)
+    return TriMesh(mesh.vertices[used], inverse.reshape(faces.shape).astype(np.int32), mesh.material[face_mask])
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -193,6 +209,21 @@ def arc(center_rz, radius: float, start: float, stop: float, count: int) -> np.n
     """``count`` points on a circular arc in the ``(r, z)`` plane, angles in radians."""
     t = np.linspace(start, stop, count)
     return np.stack([center_rz[0] + radius * np.cos(t), center_rz[1] + radius * np.sin(t)], axis=1)
+
+
+def smooth_curve(points, per_span: int = 6) -> np.ndarray:
+    """Points ``[(k - 1) * per_span + 1, 2]`` on the uniform Catmull-Rom curve through ``points [k, 2]``
+    (a lathe profile through a few ``(r, z)`` control points; each end point is its own outer
+    neighbour), ``per_span`` samples per span, both end points included."""
+    p = np.asarray(points, np.float64)
+    ext = np.concatenate([p[:1], p, p[-1:]])
+    t = (np.arange(per_span) / per_span)[:, None]
+    spans = []
+    for i in range(len(p) - 1):
+        p0, p1, p2, p3 = ext[i : i + 4]
+        spans.append(0.5 * (2 * p1 + (p2 - p0) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2
+                            + (3 * p1 - p0 - 3 * p2 + p3) * t**3))
+    return np.concatenate([*spans, p[-1:]])
 
 
 def sphere(radius: float, segments: int, max_edge: float, cut_z: float | None = None, center=(0, 0, 0)) -> TriMesh:

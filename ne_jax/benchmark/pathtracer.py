@@ -93,6 +93,18 @@ SURFACES: dict[str, tuple[Surface, ...]] = {
     # glossy red plastic sphere, brushed gold ring, glossy blue plastic cube (a smoother ring and sphere
     # make the caustics the ring throws on the sphere, and so the noise, several dB worse)
     "glossy": (Surface("plastic", 0.1), Surface("conductor", 0.2, "Au"), Surface("plastic", 0.15)),
+    # the held-out scenes (scenes.HELDOUT_SCENES): glazed vase, rough checkered ball, polished silver ring
+    "vase": (Surface("plastic", 0.1), Surface("diffuse"), Surface("conductor", 0.15, "Ag")),
+    # glazed bowl with a rough dark inside, its glazed foot, a rough painted box with a dark inside
+    "bowl": (Surface("plastic", 0.12), Surface("diffuse"), Surface("plastic", 0.12), Surface("diffuse"),
+             Surface("diffuse")),
+    # varnished wooden base, chrome stem, brass plate and ring, fabric shade (out, in), glass-like bulb,
+    # chrome spokes
+    "lamp": (Surface("plastic", 0.25), Surface("conductor", 0.15, "Cr"), Surface("conductor", 0.2, "Cu"),
+             Surface("diffuse"), Surface("diffuse"), Surface("plastic", 0.2), Surface("conductor", 0.15, "Cr")),
+    # rough textured dish inside, glazed outside, aluminium foot, rough column, glossy striped ball
+    "pattern": (Surface("diffuse"), Surface("plastic", 0.25), Surface("conductor", 0.25, "Al"), Surface("diffuse"),
+                Surface("plastic", 0.15)),
 }
 """The material of each part of each scene (indexed like ``Scene.materials``)."""
 
