@@ -26,6 +26,12 @@ cup       concavities: a mug with a handle and a ball inside
 blocks    textured diffuse surfaces: a checkered block, a striped drum, a painted ball
 glossy    specular parts: a glossy sphere, a gold ring around it, a glossy cube on top
 ========  ================================================================================
+
+These four are the tuning scenes (:data:`SCENES`, the default benchmark). :data:`HELDOUT_SCENES`
+holds four more, never used to choose a setting (``vase``: a thin foot under a wide body; ``bowl``:
+open containers, thin rims, dark insides; ``lamp``: a wide shade seen from below on a thin stem;
+``pattern``: fine texture on curved and concave surfaces); :func:`scene_names` expands the set
+names of :data:`SCENE_SETS` (``heldout``, ``tuning``).
 """
 
 from __future__ import annotations
