@@ -34,7 +34,7 @@ import numpy as np
 from experiments.common import benchmark_suffix
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.benchmark.generate import generate_benchmark, get_preset, seen_surface_samples
-from ne_jax.benchmark.scenes import SCENES
+from ne_jax.benchmark.scenes import SCENE_SETS, SCENES, scene_names
 from ne_jax.config_json import config_key, config_set
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.eval import evaluate_model, save_images
@@ -94,7 +94,9 @@ def main(argv=None) -> None:
     parser.add_argument("--preset", default="tiny", choices=["tiny", "default"],
                         help="benchmark preset and training preset (same name)")
     parser.add_argument("--root", default=None, help="existing benchmark preset folder (default: generate)")
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES),
+                        help="scenes or a set of them (heldout: the scenes no setting is chosen on; the results "
+                             "are then train_benchmark_<preset>[_pt]_heldout)")
     parser.add_argument("--epochs", type=int, default=None, help="override the preset's epochs")
     parser.add_argument("--steps-per-epoch", type=int, default=None)
     parser.add_argument("--set", action="append", default=[], metavar="FIELD.PATH=VALUE",
@@ -108,6 +110,10 @@ def main(argv=None) -> None:
                         help="continue the runs in --runs from their last checkpoints (a long preset over "
                              "several sittings; the training time is the sum the loop recorded per epoch)")
     args = parser.parse_args(argv)
+    try:
+        args.scenes = scene_names(args.scenes)
+    except KeyError as e:
+        parser.error(f"--scenes: {e.args[0]}")
     if args.resume and args.runs is None:
         parser.error("--resume continues the runs in --runs: pass --runs DIR")
     if args.runs is not None and not args.resume:
@@ -130,6 +136,8 @@ def main(argv=None) -> None:
         if args.root is None:
             generate_benchmark(root, get_preset(args.preset), args.scenes)
         benchmark = args.preset + benchmark_suffix(root, args.scenes)  # the results of a path-traced root: <preset>_pt
+        if set(args.scenes) <= set(SCENE_SETS["heldout"]):
+            benchmark += "_heldout"
         scenes = {}
         for name in args.scenes:
             print(f"== {name}", flush=True)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ne_jax.benchmark.scenes import SCENES, get_scene
+from ne_jax.benchmark.scenes import HELDOUT_SCENES, SCENES, get_scene
 from ne_jax.edit.deformations import Edit
 from ne_jax.edit.targets import EditError, EditSource
 
@@ -30,9 +30,10 @@ def benchmark_edit(scene_dir: str | Path | None, name: str) -> tuple[Edit, Path 
             definition of the edit.
     """
     meta = _scene_meta(scene_dir)
-    if meta.get("scene") not in SCENES:
+    if meta.get("scene") not in SCENES and meta.get("scene") not in HELDOUT_SCENES:
         raise EditError(f"edit {name!r}: expected the model's scene folder to be a benchmark scene (scene.json "
-                        f"naming one of {sorted(SCENES)}), found {scene_dir} ({meta.get('scene', 'no scene.json')})")
+                        f"naming one of {sorted(SCENES) + sorted(HELDOUT_SCENES)}), found {scene_dir} "
+                        f"({meta.get('scene', 'no scene.json')})")
     scene = get_scene(meta["scene"])
     if name not in scene.edits:
         raise EditError(f"edit {name!r}: expected one of the edits of scene {scene.name!r}: {sorted(scene.edits)}")

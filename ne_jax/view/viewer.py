@@ -553,14 +553,14 @@ class Viewer:
         self._gui_save.on_click(self._guarded(save))
 
     def _benchmark_edits(self) -> tuple[str, ...]:
-        from ne_jax.benchmark.scenes import SCENES, get_scene
+        from ne_jax.benchmark.scenes import HELDOUT_SCENES, SCENES, get_scene
 
         file = Path(self.model.scene_dir) / "scene.json" if self.model.scene_dir is not None else None
         meta = {}
         if file is not None and file.is_file():
             with contextlib.suppress(ValueError):
                 meta = json.loads(file.read_text(encoding="utf-8"))
-        if meta.get("scene") not in SCENES:
+        if meta.get("scene") not in SCENES and meta.get("scene") not in HELDOUT_SCENES:
             return ()
         return tuple(sorted(get_scene(meta["scene"]).edits))
 
