@@ -28,18 +28,31 @@ def _mean(xs: list[float]) -> str:
     return f"**{sum(xs) / len(xs):.2f}**" if xs else ""
 
 
+def _rows(rc: dict, pt: dict, label: str) -> list[str]:
+    """A table's rows of one scene set: each scene's ray-cast and path-traced PSNR, SSIM and training
+    time, then the set's mean (``label``)."""
+    lines = []
+    for name in {**rc, **pt}:
+        cells = []
+        for r in (rc.get(name), pt.get(name)):
+            cells += ([f"{r['test_psnr']:.2f}", f"{r['test_ssim']:.3f}", f"{r['train_seconds']:.0f}"] if r
+                      else ["", "", ""])
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append(f"| {label} | {_mean([r['test_psnr'] for r in rc.values()])} | | | "
+                 f"{_mean([p['test_psnr'] for p in pt.values()])} | | |")
+    return lines
+
+
 def tiny(results: Path = RESULTS) -> str:
-    """``train_benchmark_tiny`` and ``_tiny_pt``: test PSNR, SSIM and training time per scene."""
+    """``train_benchmark_tiny`` and ``_tiny_pt``: test PSNR, SSIM and training time per scene; below
+    them the held-out scenes (``train_benchmark_tiny_heldout``, ``_tiny_pt_heldout``), where measured."""
     rc, pt = (_load(s, results)["scenes"] for s in ("train_benchmark_tiny", "train_benchmark_tiny_pt"))
     lines = ["| scene | ray-cast PSNR (dB) | SSIM | train time (s) | path-traced PSNR (dB) | SSIM | train time (s) |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
-    for name, r in rc.items():
-        p = pt.get(name)
-        cells = [f"{r['test_psnr']:.2f}", f"{r['test_ssim']:.3f}", f"{r['train_seconds']:.0f}"]
-        cells += [f"{p['test_psnr']:.2f}", f"{p['test_ssim']:.3f}", f"{p['train_seconds']:.0f}"] if p else ["", "", ""]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines.append(f"| mean | {_mean([r['test_psnr'] for r in rc.values()])} | | | "
-                 f"{_mean([p['test_psnr'] for p in pt.values()])} | | |")
+             "|---|---:|---:|---:|---:|---:|---:|", *_rows(rc, pt, "mean")]
+    held = [_load(s, results)["scenes"] if (results / f"{s}.json").is_file() else {}
+            for s in ("train_benchmark_tiny_heldout", "train_benchmark_tiny_pt_heldout")]
+    if any(held):
+        lines += ["| *held out* | | | | | | |", *_rows(*held, "held-out mean")]
     return "\n".join(lines)
 
 
