@@ -189,7 +189,12 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
     atomic_write_json(results / f"train_benchmark_{name}.json", report)
     changes = "".join(f" --set {s}" for s in sets)
     rerun = f"`python -m experiments.train_benchmark --preset {preset}{changes}`"
-    if name != preset:  # a benchmark variant: its folder is an input
+    if name.endswith("_heldout"):  # the held-out scenes of a benchmark variant
+        variant = name.removesuffix("_heldout")
+        rerun = (f"on the `{name}` benchmark, `python -m experiments.train_benchmark --preset {preset} --root "
+                 f"BENCH/{variant} --scenes heldout --runs RUNS{changes}` (BENCH from `ne-jax make-benchmark --preset "
+                 f"{variant} --scenes heldout --out BENCH/{variant}`)")
+    elif name != preset:  # a benchmark variant: its folder is an input
         rerun = (f"on the `{name}` benchmark, `python -m experiments.train_benchmark --preset {preset} --root "
                  f"BENCH/{name} --runs RUNS{changes}` (BENCH from `python -m experiments.make_benchmark --preset "
                  f"{name} --out BENCH`)")
