@@ -173,12 +173,13 @@ class RunConfig:
     def paper(cls, **changes) -> RunConfig:
         """The paper's settings: 4096 rays per batch, the fixed 21-level tree, lr 2e-3, rounds after
         epochs 4-12 (a GPU-sized run); 64 segment slots a ray, as a ray meets more, smaller voxels at
-        21 levels."""
+        21 levels. The growth scan walks 128 rays a call: its memory grows with the slots and samples
+        a ray holds (docs/devices.md)."""
         base = cls(name="paper", render=RenderConfig(kdtree=KDTreeConfig(depth=21)),
                    capacities=Capacities(max_segments=64),
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
                    sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),
-                   epochs=16, steps_per_epoch=5000, round_epochs=(4, 12))
+                   rounds=RoundConfig(grow_chunk=128), epochs=16, steps_per_epoch=5000, round_epochs=(4, 12))
         return base.with_schedule().replace(**changes)
 
 
