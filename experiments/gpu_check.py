@@ -291,7 +291,8 @@ def paper_run(run, scene: Path, run_dir: Path, s_per_step: float, budget_s: floa
         c0 = time.perf_counter()
         model = train(run, scene, run_dir, resume=k > 1, progress=False, stop_after_epoch=k, split=split,
                       log=lambda s: log("  paper: " + s))
-        calls.append({"epoch": k, "resumed": k > 1, "s": round(time.perf_counter() - c0, 1)})
+        calls.append({"epoch": k, "resumed": k > 1, "s": round(time.perf_counter() - c0, 1),
+                      "host_peak_rss_bytes": peak_memory()["host_peak_rss_bytes"]})  # the process's so far
     train_s = time.perf_counter() - t0
     scored = score(model, scene, views)
     hist = _epochs(model.history)

@@ -36,8 +36,11 @@ def preset():
 def markdown(res: dict) -> str:
     p, m = res["paper"], res["paper"]["memory"]
     host = m["host_peak_rss_bytes"] / 2**30
-    e = "\n".join(f"| {r['epoch']} | {r['steps']} | {r['train_s']} | {r['psnr_train']} | {r['alive']} | "
-                  f"{r['round_s'] if r['round_s'] is not None else ''} | {r['compiles']} |" for r in p["epochs"])
+    rss = {c["epoch"]: c.get("host_peak_rss_bytes") for c in p["calls"]}
+    gib = {k: "" if v is None else f"{v / 2**30:.1f}" for k, v in rss.items()}
+    e = "\n".join(f"| {r['epoch']} | {r['steps']} | {r['train_s']} | {r['psnr_train']:.2f} | {r['alive']} | "
+                  f"{r['round_s'] if r['round_s'] is not None else ''} | {r['compiles']} | {gib.get(r['epoch'], '')} |"
+                  for r in p["epochs"])
     pr = p["projected"]
     return (f"`paper` preset on an 800 px ray-cast `glossy` scene (100 training, 200 test views) on "
             f"{res['device']['kind']}; commit {res['commit']}, config key {p['config_key']}; `{res['command']}`.\n\n"
@@ -45,8 +48,8 @@ def markdown(res: dict) -> str:
             f"epoch 2, each epoch a resumed call ({'; stopped ' + p['stopped'] if p['stopped'] else 'all ran'}); "
             f"images loaded in {p['load_images_s']} s, initial cloud {p['initial_cloud']['points']} points "
             f"({p['initial_cloud']['source']}) in {p['initial_cloud']['seconds']} s, training {p['wall_s']} s in "
-            "all.\n\n| epoch | steps | train s | train PSNR | alive | round s | compiles |\n"
-            "|---:|---:|---:|---:|---:|---:|---:|\n"
+            "all.\n\n| epoch | steps | train s | train PSNR | alive | round s | compiles | peak RSS so far (GiB) |\n"
+            "|---:|---:|---:|---:|---:|---:|---:|---:|\n"
             f"{e}\n\n"
             f"A step: {p['s_per_step']} s ({p['train_rays_per_s']} rays/s, the epochs that compiled nothing). "
             f"{p['test']['views']} test views of {p['test']['image_px']} px scored: PSNR {p['test']['psnr']} dB "

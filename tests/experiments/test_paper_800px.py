@@ -15,7 +15,8 @@ def test_the_table_states_the_projection_and_the_memory_goal():
              "compiles": 1}
     paper = {"config_key": "k", "epochs_planned": 4, "steps_per_epoch": 5, "batch_rays": 4096, "stopped": None,
              "load_images_s": 1.0, "initial_cloud": {"points": 1000, "source": "carving", "seconds": 2.0},
-             "wall_s": 30.0, "epochs": [epoch, {**epoch, "epoch": 2, "round_s": 9.0, "compiles": 0}],
+             "wall_s": 30.0, "calls": [{"epoch": 1, "host_peak_rss_bytes": 3 * 2**30}, {"epoch": 2}],
+             "epochs": [epoch, {**epoch, "epoch": 2, "round_s": 9.0, "compiles": 0}],
              "s_per_step": 4.0, "train_rays_per_s": 1024,
              "test": {"views": 2, "image_px": 800, "psnr": 20.0, "view_s": [60.0, 30.0], "s_per_view": 30.0,
                       "lost_segments": 0},
@@ -25,4 +26,4 @@ def test_the_table_states_the_projection_and_the_memory_goal():
     md = P.markdown({"device": {"kind": "cpu"}, "commit": "abc", "command": "python -m experiments.paper_800px",
                      "paper": paper})
     assert "**90.6 h**" in md and "20.0 GiB" in md and "NOT met" in md
-    assert "| 2 | 5 | 20.0 | 12.0 | 1000 | 9.0 | 0 |" in md
+    assert "| 1 | 5 | 20.0 | 12.00 | 1000 |  | 1 | 3.0 |" in md and "| 2 | 5 | 20.0 | 12.00 | 1000 | 9.0 | 0 |  |" in md
