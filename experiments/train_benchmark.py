@@ -114,6 +114,10 @@ def main(argv=None) -> None:
         args.scenes = scene_names(args.scenes)
     except KeyError as e:
         parser.error(f"--scenes: {e.args[0]}")
+    held_out = set(args.scenes) <= set(SCENE_SETS["heldout"])
+    if not held_out and set(args.scenes) & set(SCENE_SETS["heldout"]):
+        parser.error(f"--scenes: expected tuning scenes or held-out ones, found both ({' '.join(args.scenes)}): "
+                     "their results go to separate tables")
     if args.resume and args.runs is None:
         parser.error("--resume continues the runs in --runs: pass --runs DIR")
     if args.runs is not None and not args.resume:
@@ -136,7 +140,7 @@ def main(argv=None) -> None:
         if args.root is None:
             generate_benchmark(root, get_preset(args.preset), args.scenes)
         benchmark = args.preset + benchmark_suffix(root, args.scenes)  # the results of a path-traced root: <preset>_pt
-        if set(args.scenes) <= set(SCENE_SETS["heldout"]):
+        if held_out:
             benchmark += "_heldout"
         scenes = {}
         for name in args.scenes:

@@ -27,6 +27,16 @@ def test_resume_needs_runs(capsys):
     assert "pass --runs DIR" in capsys.readouterr().err
 
 
+def test_scenes_take_set_names_and_do_not_mix_the_sets(capsys):
+    with pytest.raises(SystemExit):
+        _load().main(["--scenes", "heldout", "stool"])
+    assert "expected tuning scenes or held-out ones, found both (vase bowl lamp pattern stool)" in \
+        capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        _load().main(["--scenes", "nope"])
+    assert "--scenes: unknown scene 'nope'" in capsys.readouterr().err
+
+
 def test_a_short_run_writes_the_table(tmp_path):
     """Two steps on a small scene (a small carving, set with ``--set``): the JSON and the table hold both
     Chamfer measures."""
