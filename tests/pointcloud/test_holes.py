@@ -90,7 +90,7 @@ def test_box_stretch_against_a_loop():
 
 def test_a_round_refills_a_patch_cut_from_a_trained_cloud(scene, tmp_path_factory):
     """A model trained a few steps, its cloud with a patch cut out: a round with ``fill_holes``
-    grows points back inside the patch (the plain scan alone adds none there)."""
+    grows points back inside the patch (the plain scan alone adds few there, near its edge)."""
     import jax
 
     from ne_jax.pointcloud.rounds import point_round
@@ -113,15 +113,23 @@ def test_a_round_refills_a_patch_cut_from_a_trained_cloud(scene, tmp_path_factor
     cut = points.replace(alive=points.alive & ~patch)
     scene_cut = PointScene.build(cut, run.render, model.scene.capacities)
     pool = build_pool(run.sampler, load_split(scene_dir, "train"), run.background)
-    rays = sample_batch(run.sampler.replace(batch_size=4096), pool, jax.random.key(0)).rays
+    # the rays through the patch: a random batch leaves the round's hole share to whichever rays
+    # render worst after a short training, which need not be the patch's
+    rays = sample_batch(run.sampler.replace(batch_size=32768), pool, jax.random.key(0)).rays
+    o, d = np.asarray(rays.origin), np.asarray(rays.direction)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    off = (centre - o) - np.sum((centre - o) * d, axis=1, keepdims=True) * d
+    near_patch = np.flatnonzero(np.linalg.norm(off, axis=1) < 0.3)[:2048]
+    rays = jax.tree.map(lambda a: a[near_patch], rays)
     added = {}
     for fill in (False, True):
         cfg = run.rounds.replace(fill_holes=fill, grow_max_fraction=0.2, prune=False, denoise=False)
         new, report = point_round(cfg, run.render, model.params, scene_cut, rays, pool.background, views)
         fresh = np.asarray(new.alive)[: points.capacity] & ~np.asarray(cut.alive)
         fresh = np.concatenate([fresh, np.asarray(new.alive)[points.capacity:]])
-        inside = np.linalg.norm(np.asarray(new.xyz)[fresh] - centre, axis=1) < 0.3
+        # the patch's inner part: the scan's voxels reach a little way in from the cut's edge
+        inside = np.linalg.norm(np.asarray(new.xyz)[fresh] - centre, axis=1) < 0.2
         added[fill] = int(inside.sum())
         if fill:
             assert report["grown"]["holes"]["candidates"] > 0 and report["grown"]["holes"]["added"] > 0
-    assert added[True] > max(5, 2 * added[False])
+    assert added[True] >= 10 and added[True] > 3 * added[False]
