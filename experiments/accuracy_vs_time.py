@@ -38,13 +38,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-from experiments.common import RESULTS, SHARED_NOTE, best_time
+from experiments.common import RESULTS, SHARED_NOTE, entry, machine, time_test_render
 from ne_jax.config_json import config_key
 
 TWO_PASS_SHARE = 0.25
@@ -209,10 +207,8 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     import numpy as np
 
     from ne_jax.atomic import atomic_write_json
-    from ne_jax.data.nerf_synthetic import load_split, parse_background
+    from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.eval.views import evaluate_split
-    from ne_jax.render.driver import render_image
-    from ne_jax.render.quadrature import at_test_time
     from ne_jax.train.loop import train
 
     run = c.run
@@ -220,7 +216,6 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     cached = is_finished(run, runs)
     result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
     split = load_split(scene_dir, "test")
-    near, far = run.sampler.near, run.sampler.far
     key = score_key(scene_dir, result.state.step)
     # rendered with the buffer sizes the run starts with, not the ones its training grew to (as in
     # the image study): the frontier candidates are scored and timed at their own width
@@ -228,14 +223,11 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     kept = json.loads((run_dir / SCORE_FILE).read_text()) if (run_dir / SCORE_FILE).is_file() else {}
     score_cached = all(kept.get(k) == v for k, v in key.items())
     if not score_cached:
-        report, _ = evaluate_split(run.render, result.state.params, scene, split, run.background, near,
-                                   far, progress=False)
+        report, _ = evaluate_split(run.render, result.state.params, scene, split, run.background, run.sampler.near,
+                                   run.sampler.far, progress=False)
         kept = {**key, "psnr": round(report["psnr"], 4), "ssim": round(report["ssim"], 5)}
         atomic_write_json(run_dir / SCORE_FILE, kept)
-    cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
-    fn = functools.partial(render_image, cfg, result.state.params, scene, split.cameras()[0],
-                           parse_background(run.background), near, far, progress=False)
-    first, best = best_time(fn, repeats)
+    first, best = time_test_render(run, result.state.params, scene, split.cameras()[0], repeats)
     jax.clear_caches()
     row = {"label": c.label, "knob": c.knob, "run_dir": str(run_dir), "cached": bool(cached),
            "score_cached": score_cached, "psnr": kept["psnr"], "ssim": kept["ssim"],
@@ -514,7 +506,7 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     res = {"study": "training", "command": command, "preset": preset, "preset_key": run_key(run),
            "scene": str(scene_dir), "quick": quick,
            "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
-           "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": SHARED_NOTE},
+           "machine": machine(note=SHARED_NOTE),
            "jax": jax.__version__, "rows": rows, "unfinished": unfinished,
            "wall_s": round(time.perf_counter() - t0, 1)}
     res["choice"] = choose_preset(rows)
@@ -566,7 +558,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    sys.exit(main())
+    entry(main)

@@ -28,12 +28,13 @@ import json
 import math
 import multiprocessing as mp
 import os
-import platform
 import resource
 import sys
 import time
 
 import numpy as np
+
+from experiments.common import best_of, entry, machine
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -88,15 +89,6 @@ def camera_rays_batch(res: int):
     return Rays(origin=cat("origin"), direction=cat("direction"), near=cat("near"), far=cat("far"))
 
 
-def timeit(fn, repeat=3):
-    best = math.inf
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
-
-
 def run_size(n: int, quick: bool) -> dict:
     import jax
     import jax.numpy as jnp
@@ -133,14 +125,14 @@ def run_size(n: int, quick: bool) -> dict:
             out["build_phases_s"] = phases
     out["depth"] = tree.depth
     out["tree_bytes"] = int(sum(a.nbytes for a in jax.tree_util.tree_leaves(tree)))
-    out["ckdtree_build_s"] = timeit(lambda: cKDTree(xyz), 3 if n <= 10**6 else 2)
+    out["ckdtree_build_s"] = best_of(lambda: cKDTree(xyz), 3 if n <= 10**6 else 2)
     pts_o3d = o3d.core.Tensor(xyz)
 
     def o3d_build():
         nns = o3d.core.nns.NearestNeighborSearch(pts_o3d)
         nns.knn_index()
 
-    out["open3d_build_s"] = timeit(o3d_build, 2)
+    out["open3d_build_s"] = best_of(o3d_build, 2)
 
     # --- traversal -----------------------------------------------------------------------------
     res = 64 if quick else 128
@@ -148,7 +140,7 @@ def run_size(n: int, quick: bool) -> dict:
     seg, cap = intersect_checked(tree, rays, cfg, cap)
     out["frontier_capacity"], out["max_segments"] = cap.frontier, cap.max_segments
     out["num_rays"] = int(rays.origin.shape[0])
-    t_int = timeit(lambda: jax.block_until_ready(intersect(tree, rays, cfg, cap)))
+    t_int = best_of(lambda: intersect(tree, rays, cfg, cap), 3)
     out["intersect_rays_per_s"] = out["num_rays"] / t_int
     out["us_per_ray"] = 1e6 * t_int / out["num_rays"]
     valid = np.asarray(seg.valid)
@@ -184,7 +176,7 @@ def run_size(n: int, quick: bool) -> dict:
         jax.block_until_ready(res_)
 
     f(state, tree, jnp.asarray(samples_p[:chunk]), jnp.asarray(nodes_p[:chunk]))  # compile
-    t_knn = timeit(run_knn, 2)
+    t_knn = best_of(run_knn, 2)
     # Peak so far: our build + traversal + KNN (plus the small cKDTree/Open3D builds), before the
     # scipy KNN baseline runs.
     out["peak_rss_mb_ours"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -212,7 +204,7 @@ def run_size(n: int, quick: bool) -> dict:
             out_idx.append(idx)
         return np.concatenate(out_idx)
 
-    t_sp = timeit(run_scipy, 2)
+    t_sp = best_of(run_scipy, 2)
     out["scipy_samples_per_s"] = flat.shape[0] / t_sp
     exact_idx = run_scipy()
     # recall on a subsample of segments (the candidate path, same samples)
@@ -271,7 +263,7 @@ def main(argv=None):
 
     meta = {
         "command": "python -m experiments.bench_geometry" + (" --quick" if args.quick else ""),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__},
+        "machine": machine(jax=jax.__version__),
         "rows": rows,
         "table_markdown": md,
     }
@@ -282,7 +274,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+    entry(main)

@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -24,10 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ne_jax.benchmark import scenes as S
+from experiments.common import bench_cloud, entry, machine
 from ne_jax.data import cameras
 from ne_jax.data.rays import Camera
-from ne_jax.geometry.points import PointState
 from ne_jax.render.driver import render_image
 from ne_jax.render.renderer import PointScene, RenderConfig
 from ne_jax.render.shading import init_color_model, num_params
@@ -35,14 +32,6 @@ from ne_jax.train.run import get_run_preset
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_render.json"
 RES = 100
-
-
-def make_points(n: int) -> PointState:
-    scene = S.get_scene("glossy", 1.0)
-    smp = S.surface_samples(scene, n, seed=0)
-    pts = PointState.from_numpy(smp["xyz"].astype(np.float32), feature_dim=32, normal=smp["normal"].astype(np.float32))
-    feat = jax.random.normal(jax.random.key(0), pts.feature.shape) * 0.5
-    return pts.replace(feature=feat, conf_logit=jnp.full(pts.conf_logit.shape, 2.0))
 
 
 def time_render(cfg: RenderConfig, scene: PointScene, repeats: int) -> dict:
@@ -90,7 +79,7 @@ def main(argv=None) -> None:
         run = get_run_preset(preset)
         cfg = run.render
         if n not in clouds:
-            clouds[n] = make_points(n)
+            clouds[n] = bench_cloud(n, 32, spread=0.5)
         t0 = time.perf_counter()
         scene = PointScene.build(clouds[n], cfg, run.capacities)
         build = time.perf_counter() - t0
@@ -121,7 +110,7 @@ def main(argv=None) -> None:
         "command": "python -m experiments.bench_render" + (" --quick" if args.quick else ""),
         "device": device,
         "jax": jax.__version__,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "machine": machine(),
         "image": f"{RES}x{RES}",
         "rows": rows,
     }
@@ -143,7 +132,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+    entry(main)

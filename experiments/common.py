@@ -1,8 +1,11 @@
-"""What the experiment modules share: paths, provenance, timing and writing results."""
+"""What the experiment modules share: paths, provenance, the entry point, the speed benchmarks' test
+scene and timing loop, and writing results."""
 
 from __future__ import annotations
 
 import math
+import os
+import platform
 import re
 import shlex
 import sys
@@ -15,6 +18,26 @@ RESULTS = ROOT / "experiments" / "results"
 """Where results files go by default."""
 SHARED_NOTE = ("2 CPU cores shared with other jobs: timings are noisy (minimum over repeats, "
                "compile excluded); ratios from one process are more reliable than absolute values")
+SCENE = "glossy"
+"""The benchmark scene the speed benchmarks run on (specular: the models declare view-dependent colour)."""
+
+
+def entry(main, huge_pages: bool = True) -> None:
+    """A module's ``if __name__ == "__main__"`` block: the process set up as ``ne-jax`` sets it up
+    (``ne_jax.setup``: a host device per usable core and, with ``huge_pages``, huge pages for XLA's
+    scratch memory, starting the process again with them), then ``main()``, whose return value is
+    the exit status. The module's imports, before it, start no JAX."""
+    import ne_jax
+
+    ne_jax.setup(huge_pages=huge_pages)
+    sys.exit(main())
+
+
+def machine(python: bool = False, **extra) -> dict:
+    """What a results file records of the machine: its CPU count and platform (with ``python``, Python's
+    version), then ``extra``."""
+    return {"cpus": os.cpu_count(), "platform": platform.platform(),
+            **({"python": platform.python_version()} if python else {}), **extra}
 
 
 def commit(paths: tuple[str, ...] = ("ne_jax",)) -> str:
@@ -39,10 +62,10 @@ def best_time(fn, repeats: int) -> tuple[float, float]:
     t0 = time.perf_counter()
     jax.block_until_ready(fn())
     first = time.perf_counter() - t0
-    return first, _best_of(fn, repeats)
+    return first, best_of(fn, repeats)
 
 
-def _best_of(fn, repeats: int) -> float:
+def best_of(fn, repeats: int) -> float:
     """The minimum over ``max(1, repeats)`` calls of ``fn``, in seconds (each waited for)."""
     import jax
 
@@ -52,6 +75,40 @@ def _best_of(fn, repeats: int) -> float:
         jax.block_until_ready(fn())
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+def bench_cloud(n: int, feature_dim: int, headroom: float = 1.0, spread: float | None = None):
+    """The speed benchmarks' test scene: ``n`` surface samples (seed 0) of the benchmark's :data:`SCENE`
+    with their normals, as a :class:`~ne_jax.geometry.points.PointState` of ``ceil(n x headroom)``
+    slots. Its features are ``PointState.from_numpy``'s from key 0, or with ``spread`` ``spread x N(0,
+    1)`` from key 0 with confidence logits 2 (a random model: a render costs the same whatever the
+    weights)."""
+    import jax
+    import jax.numpy as jnp
+
+    from ne_jax.benchmark import scenes as S
+    from ne_jax.geometry.points import PointState
+
+    smp = S.surface_samples(S.get_scene(SCENE, 1.0), n, seed=0)
+    xyz, normal, capacity = smp["xyz"], smp["normal"], int(math.ceil(n * headroom))
+    if spread is None:
+        return PointState.from_numpy(xyz, capacity, feature_dim, normal=normal, key=jax.random.key(0))
+    pts = PointState.from_numpy(xyz, capacity, feature_dim, normal=normal)
+    return pts.replace(feature=spread * jax.random.normal(jax.random.key(0), pts.feature.shape),
+                       conf_logit=jnp.full(pts.conf_logit.shape, 2.0))
+
+
+def time_test_render(run, params, scene, camera, repeats: int, mesh=None) -> tuple[float, float]:
+    """``(first_call_s, best_s)`` (:func:`best_time`) of ``run``'s render of ``camera`` at test time
+    (its quadrature :func:`~ne_jax.render.quadrature.at_test_time`), on its background, near and far."""
+    from ne_jax.data.nerf_synthetic import parse_background
+    from ne_jax.render.driver import render_image
+    from ne_jax.render.quadrature import at_test_time
+
+    cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
+    bg, near, far = parse_background(run.background), run.sampler.near, run.sampler.far
+    return best_time(lambda: render_image(cfg, params, scene, camera, bg, near, far, progress=False, mesh=mesh).rgb,
+                     repeats)
 
 
 def timed_steps(step, state, scene, batches) -> tuple:

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
+
+from experiments.common import entry
 
 
 def array_differences(a, b) -> dict[str, float | str]:
@@ -64,7 +65,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    sys.exit(main())
+    entry(main)

@@ -39,15 +39,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-from experiments.common import RESULTS, SHARED_NOTE, best_time, command, commit, device_tag, timed_steps, write_results
-from experiments.gpu_check import SCENE, SCENE_ROOT, peak_memory, scene_dir, sizes, toy
+from experiments import common
+from experiments.common import SCENE, best_time, timed_steps
+from experiments.gpu_check import SCENE_ROOT, peak_memory, scene_dir, sizes, toy
 
 REFERENCE = {"batch": 2048, "image": 200, "cloud": 100_000, "depth": 17, "render": 200, "round": 100_000}
 
@@ -127,18 +126,6 @@ class Peak:
 
 
 # ---------------------------------------------------------------- the pieces
-
-
-def cloud(n: int, capacity_headroom: float, feature_dim: int):
-    """``n`` surface samples of the scene as a :class:`PointState` (capacity ``ceil(n * headroom)``)."""
-    import jax
-
-    from ne_jax.benchmark import scenes as S
-    from ne_jax.geometry.points import PointState
-
-    smp = S.surface_samples(S.get_scene(SCENE, 1.0), n, seed=0)
-    return PointState.from_numpy(smp["xyz"], int(math.ceil(n * capacity_headroom)), feature_dim,
-                                 normal=smp["normal"], key=jax.random.key(0))
 
 
 @functools.lru_cache(maxsize=8)
@@ -223,20 +210,15 @@ def pool_cost(run, scene: Path, repeats: int) -> tuple[object, dict]:
 
 def render_cost(run, params, points, scene: Path, repeats: int) -> dict:
     """Test view 0 of ``scene`` rendered at test time with ``run``'s render config."""
-    from ne_jax.data.nerf_synthetic import load_split, parse_background
+    from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.devices import ray_mesh
-    from ne_jax.render.driver import render_image
-    from ne_jax.render.quadrature import at_test_time
     from ne_jax.render.renderer import PointScene
 
     view = load_split(scene, "test").take([0])
-    cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
     built = PointScene.build(points, run.render, run.capacities)
     with Peak() as peak:
-        image = lambda: render_image(cfg, params, built, view.camera(0), parse_background(run.background),  # noqa: E731
-                                     run.sampler.near, run.sampler.far, progress=False, mesh=ray_mesh(1)).rgb
-        first, best = best_time(image, repeats)
-    rays = view.width * view.height * cfg.pixel_samples ** 2
+        first, best = common.time_test_render(run, params, built, view.camera(0), repeats, mesh=ray_mesh(1))
+    rays = view.width * view.height * run.render.pixel_samples ** 2
     return {"px": view.width, "rays": rays, "ms": round(1e3 * best, 1), "compile_s": round(max(0.0, first - best), 1),
             "rays_per_s": round(rays / best), **peak.record()}
 
@@ -285,7 +267,7 @@ def study(a: Axes, scene_root: Path, steps: int, repeats: int, render_repeats: i
     run = base_run(a.quick)
     scenes = [scene_dir(p, scene_root, log) for p in a.images]
     ref_points = a.clouds[0]
-    pts = {n: cloud(n, INIT_CAPACITY_HEADROOM, run.render.shading.feature_dim) for n in a.clouds}
+    pts = {n: common.bench_cloud(n, run.render.shading.feature_dim, INIT_CAPACITY_HEADROOM) for n in a.clouds}
     params = init_train_state(run.train, run.render, pts[ref_points], jax.random.key(1)).params
     rows, compiled = [], {}
 
@@ -320,8 +302,8 @@ def study(a: Axes, scene_root: Path, steps: int, repeats: int, render_repeats: i
     return {"preset": run.name, "scene": SCENE, "steps": steps, "repeats": repeats, "render_repeats": render_repeats,
             "reference": references(a),
             "device": {"platform": dev.platform, "kind": dev.device_kind, "count": len(jax.devices())},
-            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_before": os.getloadavg()},
-            "jax": jax.__version__, "note": SHARED_NOTE, "seconds": round(time.perf_counter() - t_start), "rows": rows}
+            "machine": common.machine(load_before=os.getloadavg()), "jax": jax.__version__, "note": common.SHARED_NOTE,
+            "seconds": round(time.perf_counter() - t_start), "rows": rows}
 
 
 # the field that holds each kind of row's cost
@@ -409,22 +391,19 @@ def main(argv=None) -> int:
     ap.add_argument("--render-repeats", type=int, default=2, help="timed renders after a compiling one")
     ap.add_argument("--scene-root", type=Path, default=SCENE_ROOT,
                     help="where the scenes are kept (generated there if missing; needs Open3D)")
-    ap.add_argument("--out-dir", type=Path, default=RESULTS)
+    ap.add_argument("--out-dir", type=Path, default=common.RESULTS)
     ap.add_argument("--quick", action="store_true", help="toy sizes (a smoke test)")
     args = ap.parse_args(argv)
     if min(args.steps, args.repeats, args.render_repeats) < 1:
         raise SystemExit("--steps, --repeats, --render-repeats: expected at least 1 each")
     res = study(axes(args.quick), args.scene_root, args.steps, args.repeats, args.render_repeats,
                 log=lambda m: print(m, file=sys.stderr, flush=True))
-    res.update(command=command("cost_growth", argv), commit=commit())
-    tag = device_tag()
+    res.update(command=common.command("cost_growth", argv), commit=common.commit())
+    tag = common.device_tag()
     stem = "cost_growth_quick" if args.quick else ("cost_growth" if tag == "cpu" else f"cost_growth_{tag}")
-    write_results(args.out_dir, stem, res, markdown(res))
+    common.write_results(args.out_dir, stem, res, markdown(res))
     return 0
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    raise SystemExit(main())
+    common.entry(main)

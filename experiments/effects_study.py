@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -23,7 +22,6 @@ import jax
 import numpy as np
 
 from experiments import common
-from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.config_json import config_key
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.eval import evaluate_model
@@ -31,7 +29,6 @@ from ne_jax.train.effects import ALL_ON, declare_effects, effects_of, scene_effe
 from ne_jax.train.loop import train
 from ne_jax.train.run import get_run_preset
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SCENES = ("glossy", "cup", "stool", "blocks")
 TIMING_NOTE = ("train_seconds: wall time of one training as the run recorded it (compiles included; a cached run keeps "
                "its own); train_cpu_seconds: this process's CPU time over that training (for a resumed or "
@@ -41,21 +38,11 @@ TIMING_NOTE = ("train_seconds: wall time of one training as the run recorded it 
                "recorded): wall times move with that load, CPU times much less")
 
 
-def _commit() -> str:
-    return common.commit()
-
-
 def _machine() -> dict:
     """CPU count, device, JAX version and the load average (other jobs inflate the timings)."""
-    load = [round(x, 2) for x in os.getloadavg()]
-    return {"cpus": os.cpu_count(), "usable_cpus": len(os.sched_getaffinity(0)), "device": jax.devices()[0].device_kind,
-            "jax_devices": jax.device_count(), "jax": jax.__version__, "platform": platform.platform(),
-            "load_average_1_5_15_min": load, "note": TIMING_NOTE}
-
-
-def _cpu_seconds() -> float:
-    """This process's CPU time (user + system, all its threads): what a job costs, whatever else runs."""
-    return time.process_time()
+    return common.machine(usable_cpus=len(os.sched_getaffinity(0)), device=jax.devices()[0].device_kind,
+                          jax_devices=jax.device_count(), jax=jax.__version__,
+                          load_average_1_5_15_min=[round(x, 2) for x in os.getloadavg()], note=TIMING_NOTE)
 
 
 def specs_for(preset: str, scene_dir: Path, each_effect: bool) -> list[str]:
@@ -73,15 +60,15 @@ def measure(preset: str, scene_dir: Path, spec: str, run_dir: Path) -> dict:
     render, record = declare_effects(base.render, spec, scene_dir)
     run = base.replace(render=render)
     fresh = not (Path(run_dir) / "metrics.json").exists()  # else resumed or cached: its CPU time as recorded
-    c0 = _cpu_seconds()
+    c0 = time.process_time()  # this process's CPU time, all its threads: what a job costs, whatever else runs
     model = train(run, scene_dir, run_dir, progress=False, log=lambda s: None, notes={"effects": record})
-    train_cpu = _cpu_seconds() - c0 if fresh else model.recorded_cpu_seconds
+    train_cpu = time.process_time() - c0 if fresh else model.recorded_cpu_seconds
     split = load_split(scene_dir, "test")
     evaluate_model(model, split, progress=False, lpips_net=None)  # compiles
-    t0, c0 = time.perf_counter(), _cpu_seconds()
+    t0, c0 = time.perf_counter(), time.process_time()
     report, _ = evaluate_model(model, split, progress=False, lpips_net=None)
     per_image = (time.perf_counter() - t0) / split.num_views
-    cpu_per_image = (_cpu_seconds() - c0) / split.num_views
+    cpu_per_image = (time.process_time() - c0) / split.num_views
     params = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(model.state.params))
     return {"spec": spec, "effects": record["effects"], "source": record["source"], "config_key": config_key(run),
             "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()],
@@ -106,7 +93,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     out = args.out or f"effects_study_{args.preset}"
     rows = []
-    machine_at_start, commit_at_start = _machine(), _commit()  # the code imported is the code at the start
+    machine_at_start, commit_at_start = _machine(), common.commit()  # the code imported is the code at the start
     for scene in args.scenes:
         specs = specs_for(args.preset, args.root / scene, args.each_effect)
         unknown = sorted(set(args.specs or ()) - set(specs))
@@ -124,7 +111,6 @@ def main(argv=None) -> None:
     report = {"what": "declared effects against every effect on, per scene", "commit": commit_at_start,
               "command": command, "machine": machine_at_start,
               "load_average_at_end": _machine()["load_average_1_5_15_min"], "rows": rows}
-    atomic_write_json(RESULTS / f"{out}.json", report)
     lines = [f"Declared effects (`scene.json`) against every effect on (`all`), preset `{args.preset}`, commit "
              f"{report['commit']}: `{command}`.", "",
              "| scene | effects | specular | background model | train s | train CPU s | s / image | CPU s / image | "
@@ -136,12 +122,8 @@ def main(argv=None) -> None:
         lines.append(f"| {r['scene']} | {r['spec']} | {e['specular']} | {e['background_model']} | "
                      f"{r['train_seconds']:.0f} | {cpu} | {r['seconds_per_image']:.2f} | "
                      f"{r['cpu_seconds_per_image']:.2f} | {r['parameters']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} |")
-    atomic_write_text(RESULTS / f"{out}.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    common.write_results(common.RESULTS, out, report, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+    common.entry(main)

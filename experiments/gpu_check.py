@@ -46,10 +46,9 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.common import RESULTS, best_time, command, commit, device_tag, time_steps, write_results
+from experiments import common
+from experiments.common import SCENE
 
-SCENE = "glossy"
-"""The benchmark scene every part uses (specular parts: the model declares view-dependent colour)."""
 PAPER_STEPS = 80_000
 """The ``paper`` preset's steps (16 epochs x 5,000)."""
 PAPER_ROUNDS = 9
@@ -167,11 +166,9 @@ def rates(run, scene: Path, steps: int, repeats: int) -> dict:
     import jax
     import numpy as np
 
-    from ne_jax.data.nerf_synthetic import load_split, parse_background
+    from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.geometry.points import PointState
     from ne_jax.pointcloud.init import ground_truth_cloud
-    from ne_jax.render.driver import render_image
-    from ne_jax.render.quadrature import at_test_time
     from ne_jax.render.renderer import PointScene
     from ne_jax.train.run import INIT_CAPACITY_HEADROOM
     from ne_jax.train.sampler import build_pool
@@ -189,13 +186,9 @@ def rates(run, scene: Path, steps: int, repeats: int) -> dict:
     train_split = load_split(scene, "train")
     pool = build_pool(run.sampler, train_split, run.background)
     model = types.SimpleNamespace(state=state, scene=built)  # what time_steps reads of a trained model
-    step = time_steps(run, model, pool, built, steps)
+    step = common.time_steps(run, model, pool, built, steps)
     view = load_split(scene, "test").take([0])
-    cfg = run.render.replace(quadrature=at_test_time(run.render.quadrature))
-    bg = parse_background(run.background)
-    image = lambda: render_image(cfg, state.params, built, view.camera(0), bg, run.sampler.near,  # noqa: E731
-                                 run.sampler.far, progress=False).rgb
-    first, t_img = best_time(image, repeats)
+    first, t_img = common.time_test_render(run, state.params, built, view.camera(0), repeats)
     rays = view.width * view.height * run.render.pixel_samples ** 2
     return {"points": n, "tree_depth": int(built.tree.depth), "tree_build_s": round(build_s, 2),
             "train_rays_per_s": round(step["batch_rays"] / (step["ms_per_step"] / 1e3)), **step,
@@ -394,7 +387,7 @@ def main(argv=None) -> int:
                     help="where the generated scenes are kept (generated there if missing; needs Open3D)")
     ap.add_argument("--run-root", type=Path, default=Path("/tmp/ne_jax_gpu_check/runs"),
                     help="the runs' directories (started afresh)")
-    ap.add_argument("--out-dir", type=Path, default=RESULTS)
+    ap.add_argument("--out-dir", type=Path, default=common.RESULTS)
     ap.add_argument("--commit", help="the commit to record where the checkout has no git (a copied tree)")
     ap.add_argument("--tiny", action="store_true", help="every part at a toy size (a CPU smoke test)")
     ap.add_argument("--generate-only", action="store_true",
@@ -409,8 +402,8 @@ def main(argv=None) -> int:
         return 0
     from ne_jax.atomic import atomic_write_json
 
-    stem = f"gpu_check{'_tiny' if args.tiny else ''}_{device_tag()}"
-    known = {"command": command("gpu_check", argv), "commit": args.commit or commit()}
+    stem = f"gpu_check{'_tiny' if args.tiny else ''}_{common.device_tag()}"
+    known = {"command": common.command("gpu_check", argv), "commit": args.commit or common.commit()}
 
     def save(res):  # the parts so far, marked incomplete
         args.out_dir.mkdir(parents=True, exist_ok=True)
@@ -418,12 +411,9 @@ def main(argv=None) -> int:
 
     res = check(sizes(args.tiny), args.scene_root, args.run_root, args.budget_s, log, save)
     res.update(known, complete=True)
-    write_results(args.out_dir, stem, res, markdown(res))
+    common.write_results(args.out_dir, stem, res, markdown(res))
     return 0
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    raise SystemExit(main())
+    common.entry(main)

@@ -21,14 +21,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 from pathlib import Path
 
+from experiments.common import RESULTS, entry, machine
 from ne_jax.benchmark.generate import PRESETS, generate_benchmark, get_preset, list_variants
 from ne_jax.provenance import commit
 from ne_jax.viz import contact_sheet
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def main(argv=None) -> None:
@@ -86,12 +84,11 @@ def main(argv=None) -> None:
         }
         print(f"benchmark[{name}]: {images} images in {report['seconds']:.1f} s "
               f"({1000 * report['seconds'] / images:.0f} ms per image) -> {root}", flush=True)
-    machine = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-               "loadavg": [round(x, 2) for x in os.getloadavg()]}
+    host = machine(python=True, loadavg=[round(x, 2) for x in os.getloadavg()])
     out = RESULTS / "make_benchmark.json"
     previous = json.loads(out.read_text()) if out.exists() else {}
     previous.setdefault("presets", {}).update(rows)
-    previous["machine"] = machine
+    previous["machine"] = host
     out.write_text(json.dumps(previous, indent=2) + "\n")
 
     print("\n| preset | resolution | samples / pixel | scenes x variants | images | time | per image | size |")
@@ -101,11 +98,8 @@ def main(argv=None) -> None:
         print(f"| {name} | {r['resolution']}x{r['resolution']} | {samples} | "
               f"{r['scenes']} x {r['variants_per_scene']} | {r['images']} | {r['seconds']:.1f} s | "
               f"{r['ms_per_image']:.0f} ms | {r['megabytes']:.0f} MB |")
-    print(f"\nmachine: {machine}; results in {out}")
+    print(f"\nmachine: {host}; results in {out}")
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+    entry(main)

@@ -18,7 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from experiments.common import RESULTS, command, commit, device_tag, write_results
+from experiments.common import RESULTS, command, commit, device_tag, entry, write_results
 from experiments.gpu_check import SCENE_ROOT, declared, device_info, paper_run, scene_dir
 
 HOST_MEMORY_GOAL = 16 * 2**30
@@ -90,7 +90,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    raise SystemExit(main())
+    entry(main)

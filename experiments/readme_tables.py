@@ -15,7 +15,7 @@ import re
 import sys
 from pathlib import Path
 
-from experiments.common import RESULTS, ROOT
+from experiments.common import RESULTS, ROOT, entry
 
 README = ROOT / "README.md"
 
@@ -116,7 +116,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup()  # as every entry point does (this one starts no JAX)
-    sys.exit(main())
+    entry(main, huge_pages=False)  # this one starts no JAX

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -31,8 +30,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from experiments.common import benchmark_suffix
-from ne_jax.atomic import atomic_write_json, atomic_write_text
+from experiments import common
+from experiments.common import RESULTS, benchmark_suffix, entry
 from ne_jax.benchmark.generate import generate_benchmark, get_preset, seen_surface_samples
 from ne_jax.benchmark.scenes import SCENE_SETS, SCENES, scene_names
 from ne_jax.config_json import config_key, config_set
@@ -43,8 +42,6 @@ from ne_jax.pointcloud.metrics import chamfer
 from ne_jax.provenance import commit
 from ne_jax.train.loop import initial_cloud, train
 from ne_jax.train.run import get_run_preset
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool = False) -> dict:
@@ -185,12 +182,9 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
         "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
         "batch_size": run.sampler.batch_size, "background": run.background, "set": list(sets),
         "scenes": scenes,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "jax_devices": jax.device_count(),
-                    "load_average_1_5_15_min": [round(x, 2) for x in os.getloadavg()]},
+        "machine": common.machine(python=True, jax_devices=jax.device_count(),
+                                  load_average_1_5_15_min=[round(x, 2) for x in os.getloadavg()]),
     }
-    results.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(results / f"train_benchmark_{name}.json", report)
     changes = "".join(f" --set {s}" for s in sets)
     rerun = f"`python -m experiments.train_benchmark --preset {preset}{changes}`"
     if name.endswith("_heldout"):  # the held-out scenes of a benchmark variant
@@ -215,12 +209,9 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
                      f"{s['initial_points']} -> {s['final_points']} | {s['chamfer_initial']:.4f} -> "
                      f"{s['chamfer_final']:.4f} | {s['chamfer_ratio']:.2f} | {seen} |")
     text = "\n".join(lines) + "\n"
-    atomic_write_text(results / f"train_benchmark_{name}.md", text)
+    common.write_results(results, f"train_benchmark_{name}", report, text, echo=False)
     return text
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+    entry(main)

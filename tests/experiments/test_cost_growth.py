@@ -7,6 +7,7 @@ import pytest
 
 from experiments import cost_growth as C
 from experiments import gpu_check as G
+from experiments.common import bench_cloud
 from ne_jax.train.run import INIT_CAPACITY_HEADROOM
 
 
@@ -24,7 +25,7 @@ def test_a_step_and_the_pool_it_draws_from(toy):
     pool, info = C.pool_cost(run, scenes[0], repeats=1)
     assert info["pixels"] == 8 * 16 * 16 and 0 < info["foreground"] < info["pixels"]
     assert info["device_bytes"] >= 16 * info["foreground"]  # an index and an RGB target per foreground pixel
-    points = C.cloud(a.clouds[0], INIT_CAPACITY_HEADROOM, run.render.shading.feature_dim)
+    points = bench_cloud(a.clouds[0], run.render.shading.feature_dim, INIT_CAPACITY_HEADROOM)
     compiled = {}
     first = C.step_cost(run, points, pool, steps=1, repeats=1, compiled=compiled)
     again = C.step_cost(run, points, pool, steps=1, repeats=1, compiled=compiled)
@@ -40,7 +41,7 @@ def test_a_render_and_a_round(toy):
     from ne_jax.pointcloud.init import Views
     from ne_jax.train.state import init_train_state
 
-    points = C.cloud(a.clouds[0], INIT_CAPACITY_HEADROOM, run.render.shading.feature_dim)
+    points = bench_cloud(a.clouds[0], run.render.shading.feature_dim, INIT_CAPACITY_HEADROOM)
     params = init_train_state(run.train, run.render, points, jax.random.key(1)).params
     r = C.render_cost(run, params, points, scenes[0], repeats=1)
     assert r["px"] == 16 and r["rays"] == 16 * 16 * run.render.pixel_samples ** 2 and r["rays_per_s"] > 0

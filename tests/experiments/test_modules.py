@@ -33,12 +33,26 @@ def test_imports_leave_jax_unstarted_for_the_entry_points_setup():
 
 
 def test_every_entry_point_sets_its_process_up():
-    """Each ``if __name__ == "__main__"`` block calls ``ne_jax.setup`` before ``main()``, as ``ne-jax`` does."""
+    """Each ``if __name__ == "__main__"`` block sets the process up before ``main()``, as ``ne-jax`` does:
+    with :func:`experiments.common.entry`, or with ``ne_jax.setup`` itself (a module that runs against
+    older code)."""
     for name in MODULES:
         text = (ROOT / "experiments" / f"{name}.py").read_text()
-        if "__main__" in text:
+        if 'if __name__ == "__main__":' in text:
             block = text[text.index('if __name__ == "__main__":'):]
-            assert "ne_jax.setup(" in block and block.index("ne_jax.setup(") < block.index("main()"), name
+            assert "entry(main" in block or ("ne_jax.setup(" in block
+                                             and block.index("ne_jax.setup(") < block.index("main()")), name
+
+
+def test_entry_sets_up_then_exits_with_mains_status(monkeypatch):
+    import ne_jax
+    from experiments.common import entry
+
+    calls = []
+    monkeypatch.setattr(ne_jax, "setup", lambda **kw: calls.append(("setup", kw)))
+    with pytest.raises(SystemExit) as exit_:
+        entry(lambda: calls.append("main") or 3)
+    assert calls == [("setup", {"huge_pages": True}), "main"] and exit_.value.code == 3
 
 
 @pytest.mark.parametrize("name", ["compare_runs", "accuracy_vs_time"])
