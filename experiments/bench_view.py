@@ -14,11 +14,15 @@ is measured ``--rounds`` times in fresh processes, alternating (``REF``'s ``ne_j
 checkout's, then the other way round), and the tables give the best of each, new against
 reference, in the same run.
 
-Writes ``experiments/results/bench_view.{json,md}``::
+Writes ``experiments/results/bench_view.{json,md}``. ``--screenshot PNG`` instead takes the docs'
+picture of the viewer: started on the run, the page opened in headless Chromium (selenium; the
+``view`` and ``test`` extras, Debian's ``chromium`` and ``chromium-driver``), a full-resolution frame
+awaited, points selected with the page's button, the window saved::
 
     python -m experiments.bench_view --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
     python -m experiments.bench_view --run RUN --reference-path REF
     python -m experiments.bench_view                    # trains one first (tiny blocks, a few minutes)
+    python -m experiments.bench_view --run RUN --screenshot docs/images/viewer.png
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import functools
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -235,7 +240,54 @@ def _table(new: dict, ref: dict | None) -> list[str]:
     return lines
 
 
-def main(argv=None) -> None:
+def _wait(cond, what: str, timeout: float = 300.0) -> None:
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        if cond():
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"bench_view: timed out after {timeout:.0f} s waiting for {what}")
+
+
+def screenshot(run: Path, out: Path, window: str, max_side: int) -> int:
+    """``--screenshot``: the viewer on ``run`` in a headless Chromium window of ``window`` (``W,H``)
+    pixels, its frames ``max_side`` pixels, points selected; the window saved to ``out``."""
+    chromium, driver_bin = shutil.which("chromium") or shutil.which("chromium-browser"), shutil.which("chromedriver")
+    if chromium is None or driver_bin is None:
+        print("bench_view --screenshot: expected chromium and chromedriver on PATH (Debian: apt-get install "
+              "chromium chromium-driver), found none", file=sys.stderr)
+        return 2
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.by import By
+
+    from ne_jax.atomic import atomic_write_bytes
+    from ne_jax.view.viewer import Viewer
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = chromium
+    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={window}",
+              "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"):
+        opts.add_argument(a)
+    viewer = Viewer(run, port=0, max_side=max_side)
+    driver = webdriver.Chrome(service=Service(driver_bin), options=opts)
+    try:
+        driver.get(viewer.url)
+        _wait(lambda: viewer.frames >= 1 and "full" in viewer._gui_time.content, "a full-resolution frame")
+        driver.find_element(By.XPATH, "//button[normalize-space()='Select in region']").click()
+        _wait(lambda: viewer.selection.size > 0, "a selection")
+        time.sleep(3.0)  # let the page draw the selection and the last frame
+        png = driver.get_screenshot_as_png()
+    finally:
+        driver.quit()
+        viewer.stop()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out, png)
+    print(f"wrote {out} ({len(png)} bytes)")
+    return 0
+
+
+def main(argv=None) -> int | None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", default=None, help="a tiny model's run directory (default: train one in --work)")
     ap.add_argument("--work", default="outputs/bench_view", help="where a model is trained when --run is not given")
@@ -247,8 +299,13 @@ def main(argv=None) -> None:
     ap.add_argument("--rounds", type=int, default=2,
                     help="with --reference-path: measurements of each version (alternating; the best of each kept)")
     ap.add_argument("--json-only", action="store_true", help=argparse.SUPPRESS)  # the reference's subprocess
+    ap.add_argument("--screenshot", type=Path, metavar="PNG", help="save a screenshot of the viewer instead")
+    ap.add_argument("--window", default="1200,760", help="with --screenshot: the browser window's WIDTH,HEIGHT")
+    ap.add_argument("--max-side", type=int, default=256, help="with --screenshot: the viewer's full frame size")
     args = ap.parse_args(argv)
     run = Path(args.run) if args.run else _tiny_run(Path(args.work))
+    if args.screenshot:
+        return screenshot(run, args.screenshot, args.window, args.max_side)
     if args.json_only:
         print(json.dumps(measure(run, args.size, args.frames, args.points)))
         return
@@ -302,8 +359,8 @@ def main(argv=None) -> None:
     print("\n".join(lines))
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # not common.entry: with --reference-path this file runs against older code
     import ne_jax
 
     ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+    sys.exit(main())

@@ -6,6 +6,7 @@ zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
     python -m experiments.deform_benchmark --scenes glossy --edits bend --no-finetune  # a quick look
     python -m experiments.deform_benchmark --preset tiny --root BENCH/tiny_pt --runs runs/deform_pt  # path-traced
     python -m experiments.deform_benchmark --preset tiny --runs runs/deform1 --set render.pixel_samples=1  # a field
+    python -m experiments.deform_benchmark --by-kind experiments/results/deform_benchmark_tiny.json  # by kind
 
 For each scene: the full model and every variant that needs its own model are trained with the
 preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``: a finished run is reused), then
@@ -18,7 +19,9 @@ the renderer) the name is ``deform_benchmark_<preset>_pt``. ``--set FIELD.PATH=V
 the preset (as ``ne-jax train --set`` does; recorded in the results). Every record and its figure image are
 cached in ``<runs>/<scene>/records/<config key>/<edit>/`` (the key of the preset with its ``--set``
 changes): a re-run, or one with more variants, measures only what is missing, and another config
-measures anew.
+measures anew. ``--by-kind RESULTS.json`` writes ``<stem>_by_kind.md`` next to a results file: per
+variant, the mean PSNR over the scenes of each kind of edit (:data:`KINDS`), with the mean SSIM and
+LPIPS over every edit.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import benchmark_suffix, cached_run
+from experiments.common import RESULTS, benchmark_suffix, cached_run, entry
 from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.generate import generate_benchmark, get_preset
@@ -51,8 +54,6 @@ from ne_jax.eval import evaluate_model
 from ne_jax.provenance import commit
 from ne_jax.train.model import TrainedModel
 from ne_jax.train.run import get_run_preset
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def score(model: TrainedModel, variant, scene_dir: Path) -> tuple[dict, np.ndarray]:
@@ -75,7 +76,7 @@ def main(argv=None) -> None:
     parser.add_argument("--preset", default="tiny", choices=["tiny", "default"])
     parser.add_argument("--root", default=None,
                         help="an existing benchmark folder of the preset (default: generate in --runs)")
-    parser.add_argument("--runs", required=True, help="folder for models, edited models and fine-tuning runs (reused)")
+    parser.add_argument("--runs", help="folder for models, edited models and fine-tuning runs (reused; required)")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--edits", nargs="+", default=None, help="subset of edit names (default: every edit)")
     parser.add_argument("--variants", nargs="+", default=list(MAIN_VARIANTS),
@@ -86,7 +87,14 @@ def main(argv=None) -> None:
     parser.add_argument("--no-finetune", action="store_true")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD.PATH=VALUE",
                         help="change a field of the preset's RunConfig (repeatable), e.g. render.pixel_samples=1")
+    parser.add_argument("--by-kind", type=Path, metavar="RESULTS.json",
+                        help="write the table by kind of edit of a results file next to it, and stop")
     args = parser.parse_args(argv)
+    if args.by_kind:
+        print(write_by_kind(args.by_kind).read_text(encoding="utf-8"))
+        return
+    if args.runs is None:
+        parser.error("the following arguments are required: --runs")
     try:
         full = config_set(get_run_preset(args.preset), *args.set)
     except ValueError as e:
@@ -274,8 +282,63 @@ def write_figure(out_name: str, figure: dict, variants) -> None:
                       + ", ".join(f"{s}/{e}" for s, e in rows) + "\n")
 
 
-if __name__ == "__main__":
-    import ne_jax
+KINDS = {
+    "smooth deformation": ("twist", "bend"),
+    "rigid part": ("tilt_seat", "turn_handle", "roll_ball", "tilt_ring"),
+    "cut": ("cut",),
+    "deletion": ("delete_leg", "delete_handle", "delete_ball", "delete_cube"),
+    "turn, co-moving": ("turn_with_light",),
+    "turn, fixed": ("turn_scene",),
+}
+"""Each benchmark edit by kind (``ne_jax.benchmark.scenes``: one edit of each kind per scene)."""
 
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+
+def kind_of(edit: str) -> str:
+    for kind, names in KINDS.items():
+        if edit in names:
+            return kind
+    raise KeyError(f"deform_benchmark: edit {edit!r} has no kind; expected one of {sorted(sum(KINDS.values(), ()))}")
+
+
+def by_kind(records: list[dict], stage: str = "zero_shot") -> str:
+    """A Markdown table: one row per variant, the mean PSNR of each kind of edit over the scenes,
+    the mean over every edit, and the mean SSIM and LPIPS."""
+    variants = list(dict.fromkeys(r["variant"] for r in records))
+    kinds = [k for k in KINDS if any(kind_of(r["edit"]) == k for r in records)]
+    lines = ["| variant | " + " | ".join(kinds) + " | mean | SSIM | LPIPS |",
+             "|---|" + "---:|" * (len(kinds) + 3)]
+    for v in variants:
+        rows = [r[stage] for r in records if r["variant"] == v and stage in r]
+        if not rows:
+            continue
+        cells = []
+        for k in kinds:
+            vals = [r[stage]["psnr"] for r in records if r["variant"] == v and kind_of(r["edit"]) == k and stage in r]
+            cells.append(f"{np.mean(vals):.2f}" if vals else "")
+        lp = [x["lpips"] for x in rows if x.get("lpips") is not None]
+        cells += [f"{np.mean([x['psnr'] for x in rows]):.2f}", f"{np.mean([x['ssim'] for x in rows]):.3f}",
+                  f"{np.mean(lp):.3f}" if lp else ""]
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_by_kind(results: Path) -> Path:
+    """``<stem>_by_kind.md`` next to the results file ``results`` (``--by-kind``); returns its path."""
+    data = json.loads(results.read_text(encoding="utf-8"))
+    unedited = data.get("unedited", {})
+    parts = [f"Deformation benchmark by kind of edit, preset `{data['preset']}`, commit {data['commit']} "
+             f"(from `{results.name}`; re-run: `python -m experiments.deform_benchmark --by-kind {results.name}`). "
+             "PSNR in dB, the mean over the scenes of each kind.", "", "**Zero-shot**", "", by_kind(data["records"])]
+    if any("finetune" in r for r in data["records"]):
+        parts += ["", "**Fine-tuned**", "", by_kind(data["records"], "finetune")]
+    if unedited:
+        mean = np.mean([u["psnr"] for u in unedited.values()])
+        parts += ["", f"The unedited models score {mean:.2f} dB on their own test views (mean of "
+                      f"{len(unedited)} scenes)."]
+    out = results.with_name(results.stem + "_by_kind.md")
+    atomic_write_text(out, "\n".join(parts) + "\n")
+    return out
+
+
+if __name__ == "__main__":
+    entry(main)

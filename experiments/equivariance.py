@@ -13,19 +13,24 @@ cameras (:mod:`ne_jax.edit.fidelity`). Two tables per model:
   the IST's filling and smoothing, and the IST effect off.
 
     python -m experiments.equivariance --runs RUN [RUN ...] [--views 4] [--diagnose] [--out NAME]
+    python -m experiments.equivariance --summarize experiments/results/equivariance_*tiny*.json --out NAME
 
-Writes ``experiments/results/<NAME>.json`` and ``.md`` (default ``equivariance``).
+Writes ``experiments/results/<NAME>.json`` and ``.md`` (default ``equivariance``); ``--summarize``
+writes ``<NAME>.md`` alone, one table from several results files: every model's PSNR per motion, the
+tree carried and rebuilt, and the worst rigid motion per model (the sources listed under it).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from experiments.common import RESULTS, entry
 from ne_jax.atomic import atomic_write_json, atomic_write_text
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.apply import EditConfig, apply_edit, edit_context, edited_render_config
@@ -36,7 +41,6 @@ from ne_jax.provenance import commit
 from ne_jax.render.renderer import PointScene
 from ne_jax.train.model import load_trained
 
-RESULTS = Path(__file__).resolve().parent / "results"
 AXES = {"tilted_a": (1.0, 1.0, 2.0), "tilted_b": (2.0, -1.0, 0.5), "z": (0.0, 0.0, 1.0)}
 ANGLES = (2.0, 10.0, 40.0, 90.0, 180.0)
 DIAGNOSE = ("tilted_a", 40.0)
@@ -148,9 +152,8 @@ def write(out: str, results: list[dict], command: str) -> None:
         lines += [f"**{res['run']}** (preset `{res['preset']}`, {res['views']} test views, {res['points']} points)", "",
                   "| motion | tree carried | tree rebuilt (paper) |", "|---|---:|---:|"]
         lines += [f"| {r['motion']} | {r['carry']:.2f} | {r['rebuild']:.2f} |" for r in res["motions"]]
-        rigid = [r for r in res["motions"] if r["kind"] == "rigid"]
-        lines += [f"| worst rigid motion | {min(r['carry'] for r in rigid):.2f} | "
-                  f"{min(r['rebuild'] for r in rigid):.2f} |", ""]
+        lines += [f"| worst rigid motion | {_worst(res['motions'], 'carry'):.2f} | "
+                  f"{_worst(res['motions'], 'rebuild'):.2f} |", ""]
         if res.get("diagnosis"):
             name, angle = DIAGNOSE
             lines += [f"Diagnosis: rotation by {angle:g} deg about {name} {AXES[name]}, one stage at a time.", "",
@@ -161,13 +164,47 @@ def write(out: str, results: list[dict], command: str) -> None:
     print("\n".join(lines))
 
 
+def _worst(motions: list[dict], tree: str) -> float:
+    return min(r[tree] for r in motions if r["kind"] == "rigid")
+
+
+def summary(sources: list[Path]) -> str:
+    """One table of every model in the results files ``sources`` (``--summarize``)."""
+    models, notes = [], []
+    for path in sources:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        models += data["models"]
+        notes.append(f"- `{path.name}`: commit {data['commit']}, `{data['command']}`")
+    lines = ["PSNR (dB) between the edited model seen from moved test cameras and the unedited model "
+             "(120 = identical renders); each cell: tree carried / tree rebuilt (paper).", "",
+             "| motion | " + " | ".join(f"{Path(m['scene_dir']).name} ({m['preset']})" for m in models) + " |",
+             "|---|" + "---:|" * len(models)]
+    for i, row in enumerate(models[0]["motions"]):
+        cells = [f"{m['motions'][i]['carry']:.1f} / {m['motions'][i]['rebuild']:.1f}" for m in models]
+        lines.append(f"| {row['motion']} | " + " | ".join(cells) + " |")
+    worst = [f"{_worst(m['motions'], 'carry'):.1f} / {_worst(m['motions'], 'rebuild'):.1f}" for m in models]
+    lines += ["| **worst rigid motion** | " + " | ".join(worst) + " |", "",
+              "Models: " + "; ".join(f"{Path(m['scene_dir']).name}: {m['points']} points, {m['views']} test views"
+                                     for m in models) + ".", "", "Sources:", *notes, ""]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--runs", nargs="+", required=True, help="trained run directories")
+    parser.add_argument("--runs", nargs="+", help="trained run directories (required unless --summarize)")
     parser.add_argument("--views", type=int, default=8, help="test views per model (the first ones)")
     parser.add_argument("--diagnose", action="store_true", help="also the stage-by-stage diagnosis")
     parser.add_argument("--out", default="equivariance", help="results file stem")
+    parser.add_argument("--summarize", nargs="+", type=Path, metavar="RESULTS.json",
+                        help="write one table of these results files' models to <out>.md, and stop")
     args = parser.parse_args(argv)
+    if args.summarize:
+        text = summary(args.summarize)
+        atomic_write_text(RESULTS / f"{args.out}.md", text)
+        print(text)
+        return
+    if not args.runs:
+        parser.error("the following arguments are required: --runs")
     command = ("python -m experiments.equivariance --runs " + " ".join(Path(r).name for r in args.runs)
                + f" --views {args.views}" + (" --diagnose" if args.diagnose else "") + f" --out {args.out}")
     results = []
@@ -186,7 +223,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    main()
+    entry(main)

@@ -1,5 +1,6 @@
 """The deformation benchmark's command line: ``--set`` changes the preset, is recorded in the
-results, and keys the cached records, so another config measures anew.
+results, and keys the cached records, so another config measures anew; ``--by-kind`` tables a results
+file by kind of edit.
 
 The default tests run the command line with the models, their scores and the edits' measurements
 stood in for (no training, no rendering); the benchmark with a two-step model runs with ``-m slow``."""
@@ -103,3 +104,38 @@ def test_bad_set_is_refused(capsys):
     with pytest.raises(SystemExit):
         db.main(["--runs", "x", "--set", "render.no_such_field=1"])
     assert "--set" in capsys.readouterr().err
+
+
+def _by_kind_rec(scene, edit, variant, psnr, ft=None):
+    r = {"scene": scene, "edit": edit, "variant": variant,
+         "zero_shot": {"psnr": psnr, "ssim": 0.5, "lpips": 0.1}}
+    if ft is not None:
+        r["finetune"] = {"psnr": ft, "ssim": 0.6, "lpips": None}
+    return r
+
+
+def test_means_by_kind_and_every_edit_has_a_kind(tmp_path):
+    rec = _by_kind_rec
+    records = [rec("stool", "twist", "full", 20.0, 21.0), rec("cup", "bend", "full", 22.0, 23.0),
+               rec("cup", "delete_handle", "full", 18.0, 19.0), rec("cup", "bend", "no_ist", 10.0, 11.0)]
+    table = db.by_kind(records).splitlines()
+    assert table[0] == "| variant | smooth deformation | deletion | mean | SSIM | LPIPS |"
+    assert table[2] == "| full | 21.00 | 18.00 | 20.00 | 0.500 | 0.100 |"
+    assert table[3] == "| no_ist | 10.00 |  | 10.00 | 0.500 | 0.100 |"
+    assert "| full | 22.00 | 19.00 | 21.00 | 0.600 |  |" in db.by_kind(records, "finetune")
+    with pytest.raises(KeyError, match="has no kind"):
+        db.kind_of("squash")
+    path = tmp_path / "deform_benchmark_x.json"
+    path.write_text(json.dumps({"preset": "x", "commit": "abc", "records": records,
+                                "unedited": {"cup": {"psnr": 24.0}, "stool": {"psnr": 22.0}}}))
+    db.main(["--by-kind", str(path)])
+    assert "re-run: `python -m experiments.deform_benchmark --by-kind deform_benchmark_x.json`" in \
+        (tmp_path / "deform_benchmark_x_by_kind.md").read_text()
+    text = (tmp_path / "deform_benchmark_x_by_kind.md").read_text()
+    assert "**Fine-tuned**" in text and "23.00 dB on their own test views" in text
+
+
+def test_runs_are_required_without_by_kind(capsys):
+    with pytest.raises(SystemExit):
+        db.main(["--scenes", "cup"])
+    assert "required: --runs" in capsys.readouterr().err
