@@ -6,31 +6,22 @@
 
 Every candidate is a whole :class:`~ne_jax.train.run.RunConfig`: the preset with one knob changed (K,
 samples per segment ``s``, steps, rays per batch, initial points, the traversal frontier), the joint
-2K with half ``s`` (with the preset's and with half the steps; a candidate set narrower than 2K is
-widened to it), plus the preset again with another seed, whose spread is the training noise that any
-difference must exceed. (Render settings changed on one trained model do not transfer: a model
-adapts its features to the K, ``s`` and tree it was trained with; docs/decisions.md.) Each candidate
-is trained on ``--scene`` (runs cached in ``--runs``, keyed by a hash of the config and one of the
-buffer sizes it starts with, :func:`run_key`: a re-run trains only what is missing) and scored on the
-scene's test split with its own render config. ``--finished-only`` scores the candidates whose runs
-have finished and lists the others as not trained yet (an interim result while hour-long candidates
-still train). A run's test PSNR/SSIM is kept in its folder (:data:`SCORE_FILE`) and reused while the
-scene, the run's step and the library's source are unchanged; the time per image is measured again
-at every scoring, so the time ratios always come from one process.
+2K with half ``s`` (a candidate set narrower than 2K widened to it), and the preset with another seed,
+whose spread is the training noise a difference must exceed (render settings changed on one trained
+model do not transfer: docs/decisions.md). Each is trained on ``--scene`` (runs cached in ``--runs``
+under :func:`run_key`: a re-run trains only what is missing) and scored on the test split with its own
+render config; ``--finished-only`` scores those whose runs have finished (an interim result). A run's
+test PSNR/SSIM is kept in its folder (:data:`SCORE_FILE`) while the scene, the run's step and the
+library's source are unchanged; the time per image is measured again at every scoring, so its ratios
+come from one process.
 
-Per candidate: test PSNR/SSIM, training wall time as the loop recorded it (initial cloud, epochs with
-their compiles, point-cloud rounds), the time per test image (best of repeats after a compiling call)
-and the number of points. Two Pareto fronts (PSNR against training time, PSNR against time per
-image), and the preset rule (:func:`choose_preset`): among the candidates that train in at most
-``budget`` x the preset's time and render in at most ``budget`` x its time per image, the best PSNR
-sets the bar, and the pick is the cheapest to train within the seed noise of that bar; the preset is
-confirmed when the pick is the preset itself.
-
-Writes ``accuracy_vs_time_training_<preset>_<scene>.{json,png,md}`` to ``--out-dir``, then the
-summary over every scene studied there, ``accuracy_vs_time_training_<preset>.{json,png,md}``
-(:func:`combine_scenes`): per candidate the mean over scenes of its PSNR change and of its time
-ratios against the preset, and the same rule applied to those means. The knobs are scene-dependent,
-so a preset is re-chosen from the summary, not from one scene.
+Per candidate: test PSNR/SSIM, training time as the loop recorded it, the time per test image (best of
+repeats after a compiling call) and the points; two Pareto fronts (PSNR against training time and
+against time per image) and the preset rule (:func:`choose_preset`). Writes
+``accuracy_vs_time_training_<preset>_<scene>.{json,png,md}`` to ``--out-dir``, then the summary over
+every scene studied there, ``accuracy_vs_time_training_<preset>.{json,png,md}`` (:func:`combine_scenes`:
+per candidate the mean over scenes of its PSNR change and time ratios against the preset, and the rule
+applied to those means; the knobs are scene-dependent, so a preset is re-chosen from the summary).
 """
 
 from __future__ import annotations
@@ -43,6 +34,7 @@ import time
 from pathlib import Path
 
 from experiments.common import RESULTS, SHARED_NOTE, entry, machine, time_test_render
+from experiments.common import log as common_log
 from ne_jax.config_json import config_key
 
 TWO_PASS_SHARE = 0.25
@@ -469,7 +461,7 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.train.run import get_run_preset
 
-    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    log = log or common_log
     scene_dir = Path(scene_dir)
     if not (scene_dir / "transforms_test.json").is_file():
         raise FileNotFoundError(f"--scene {scene_dir}: expected a scene folder with transforms_test.json, found none")

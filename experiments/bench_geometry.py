@@ -1,22 +1,15 @@
 """Benchmark of the geometry core (issue 3): tree build, ray traversal, KNN interpolation.
 
-For each cloud size N (surface-like clouds: points on a sphere, a torus and a box's faces), measured
-side by side in one process per size (so peak memory is per size):
+For each cloud size N (points on a sphere, a torus and a box's faces), in one process per size (so
+peak memory is per size): ``build_tree`` (and its phases) against ``scipy.spatial.cKDTree`` and
+Open3D's KNN index on the same points; rays per second through ``intersect`` for 128 x 128 camera rays
+from 4 views; KNN + interpolation of features (F=32), normals and IST at those rays' samples (8 a
+segment) against ``cKDTree.query(k=32, workers=-1)`` with a numpy weighted sum of the same arrays, and
+the candidate-set KNN's recall of the exact one (scipy's); the process's peak resident memory
+(``ru_maxrss``; "ours" before the scipy baseline runs, "all" at the end) and the tree's bytes::
 
-* build: ``build_tree`` (and its phases) vs ``scipy.spatial.cKDTree`` and Open3D's KNN index on the
-  same points;
-* traversal: rays per second through ``intersect`` for 128x128 camera rays from 4 views;
-* KNN + interpolation of features (F=32), normals and IST for the sample points of those rays
-  (8 per segment) vs ``cKDTree.query(k=32, workers=-1)`` on the same points plus a numpy weighted
-  sum of the same arrays with the same weights; recall of the candidate-set KNN against the exact
-  KNN (scipy's result);
-* peak resident memory of the process (``ru_maxrss``; "ours" = before the scipy KNN baseline
-  runs, "all" = at the end) and the tree's array bytes.
-
-Usage::
-
-    .venv/bin/python -m experiments.bench_geometry            # N = 1e4, 1e5, 1e6, 2e6
-    .venv/bin/python -m experiments.bench_geometry --quick    # N = 1e4, 3e4 (smoke test)
+    python -m experiments.bench_geometry            # N = 1e4, 1e5, 1e6, 2e6
+    python -m experiments.bench_geometry --quick    # N = 1e4, 3e4 (smoke test)
 
 Prints a Markdown table and writes ``experiments/results/bench_geometry.json``.
 """
@@ -59,34 +52,17 @@ def surface_cloud(n: int, seed: int = 0) -> np.ndarray:
     return x.astype(np.float32)
 
 
-def look_at(eye, target=(0.0, 0.0, 0.3)):
-    eye = np.asarray(eye, np.float64)
-    f = np.asarray(target) - eye
-    f /= np.linalg.norm(f)
-    up = np.array([0.0, 0.0, 1.0])
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, u, -f, eye
-    return c2w
-
-
 def camera_rays_batch(res: int):
+    """The rays of four ``res`` x ``res`` cameras around the clouds, looking at (0, 0, 0.3)."""
     import jax.numpy as jnp
 
+    from ne_jax.data.cameras import look_at
     from ne_jax.data.rays import Camera, Rays, camera_rays
 
-    rays = []
-    for k in range(4):
-        a = 2 * np.pi * k / 4 + 0.3
-        cam = Camera.from_fov(look_at([4.0 * np.cos(a), 4.0 * np.sin(a), 1.5]), res, res, 0.9)
-        rays.append(camera_rays(cam, 0.1, 10.0))
-
-    def cat(f):
-        return jnp.concatenate([getattr(r, f) for r in rays])
-
-    return Rays(origin=cat("origin"), direction=cat("direction"), near=cat("near"), far=cat("far"))
+    angles = [2 * np.pi * k / 4 + 0.3 for k in range(4)]
+    rays = [camera_rays(Camera.from_fov(look_at([4.0 * np.cos(a), 4.0 * np.sin(a), 1.5], (0.0, 0.0, 0.3)), res, res,
+                                        0.9), 0.1, 10.0) for a in angles]
+    return Rays(**{f: jnp.concatenate([getattr(r, f) for r in rays]) for f in ("origin", "direction", "near", "far")})
 
 
 def run_size(n: int, quick: bool) -> dict:

@@ -3,12 +3,11 @@
     python -m experiments.bench_render            # all presets and effects (several minutes on CPU)
     python -m experiments.bench_render --quick    # small cloud, tiny + default only
 
-A randomly initialised model on the surface samples of the ``glossy`` benchmark scene (the effects
-cost the same whatever the weights), 100x100 images from the test orbit. For each setting: compile
-time, steady-state milliseconds per image (best of ``--repeats``; wall clock and this process's CPU
-time, which moves less when other jobs share the cores) and rays per second, in one run.
-Results are merged into ``experiments/results/bench_render.json`` under the JAX backend's name
-(``cpu`` / ``gpu``), so CPU and GPU runs sit side by side.
+A random model on the ``glossy`` scene's surface samples (``common.bench_cloud``: the effects cost
+the same whatever the weights), 100 x 100 images from the test orbit; per setting the compile, the
+best of ``--repeats`` ms per image (wall, and this process's CPU time, which moves less beside other
+jobs) and rays per second. Merged into ``experiments/results/bench_render.json`` under the backend's
+name (``cpu``, ``gpu``).
 """
 
 from __future__ import annotations
@@ -39,27 +38,20 @@ def time_render(cfg: RenderConfig, scene: PointScene, repeats: int) -> dict:
     cams = [Camera.from_fov(c, RES, RES, cameras.CAMERA_ANGLE_X) for c in cameras.orbit_cameras(4)]
     bg = jnp.ones(3)
     t0 = time.perf_counter()
-    out = render_image(cfg, params, scene, cams[0], bg, cameras.NEAR, cameras.FAR)
-    jax.block_until_ready(out)
+    jax.block_until_ready(render_image(cfg, params, scene, cams[0], bg, cameras.NEAR, cameras.FAR))
     first = time.perf_counter() - t0
     for cam in cams[1:]:  # settle any capacity growth (compiles once per grown budget)
         jax.block_until_ready(render_image(cfg, params, scene, cam, bg, cameras.NEAR, cameras.FAR))
     best, best_cpu = np.inf, np.inf
     for i in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        out = render_image(cfg, params, scene, cams[i % len(cams)], bg, cameras.NEAR, cameras.FAR)
-        jax.block_until_ready(out)
+        out = jax.block_until_ready(render_image(cfg, params, scene, cams[i % 4], bg, cameras.NEAR, cameras.FAR))
         best = min(best, time.perf_counter() - t0)
         best_cpu = min(best_cpu, time.process_time() - c0)
-    return {
-        "ms_per_image": round(1000 * best, 1),
-        "cpu_ms_per_image": round(1000 * best_cpu, 1),
-        "rays_per_s": round(RES * RES / best),
-        "first_call_s": round(first, 2),
-        "segments_per_ray": round(float(jnp.mean(out.num_segments)), 2),
-        "lost_segments": int(jnp.sum(out.lost.count)),
-        "params": num_params(params),
-    }
+    return {"ms_per_image": round(1000 * best, 1), "cpu_ms_per_image": round(1000 * best_cpu, 1),
+            "rays_per_s": round(RES * RES / best), "first_call_s": round(first, 2),
+            "segments_per_ray": round(float(jnp.mean(out.num_segments)), 2),
+            "lost_segments": int(jnp.sum(out.lost.count)), "params": num_params(params)}
 
 
 def main(argv=None) -> None:
@@ -71,10 +63,8 @@ def main(argv=None) -> None:
 
     backend = jax.default_backend()
     n_points = {"tiny": 20_000, "default": 100_000, "paper": 2**21}
-    if args.quick:
-        n_points = {"tiny": 5_000, "default": 20_000}
-    rows = []
-    clouds = {}
+    n_points = {"tiny": 5_000, "default": 20_000} if args.quick else n_points
+    rows, clouds = [], {}
     for preset, n in n_points.items():
         run = get_run_preset(preset)
         cfg = run.render
@@ -106,16 +96,9 @@ def main(argv=None) -> None:
                 print(rows[-1], flush=True)
 
     device = str(jax.devices()[0])
-    report = {
-        "command": "python -m experiments.bench_render" + (" --quick" if args.quick else ""),
-        "device": device,
-        "jax": jax.__version__,
-        "machine": machine(),
-        "image": f"{RES}x{RES}",
-        "rows": rows,
-    }
-    results = json.loads(args.out.read_text()) if args.out.exists() else {}
-    results[backend] = report
+    report = {"command": "python -m experiments.bench_render" + (" --quick" if args.quick else ""), "device": device,
+              "jax": jax.__version__, "machine": machine(), "image": f"{RES}x{RES}", "rows": rows}
+    results = {**(json.loads(args.out.read_text()) if args.out.exists() else {}), backend: report}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
 

@@ -1,23 +1,16 @@
 """How fast the viewer (``ne-jax view``) answers, on this machine.
 
-1. **Frames per second** of a ``tiny`` model at 128 x 128 (and at the 32 x 32 preview the viewer shows
-   while the camera moves): the render of a browser camera to an 8-bit image
-   (:func:`ne_jax.view.frames.render_frame`), over an orbit of cameras, after one warm-up frame.
-2. **An edit on a 100,000-point model**: the tiny model's cloud resampled to 100,000 points (each
-   point copied with its features, normal and confidence, jittered by a tenth of the median spacing),
-   then the viewer's steps timed one by one: select a box region, move the selection, make the edited
-   model zero-shot (:func:`~ne_jax.edit.model.edit_model`: normals, IST, the carried tree) and render
-   it at 128 x 128.
+1. **Frames per second** of a ``tiny`` model at 128 x 128 (and the 32 x 32 preview shown while the
+   camera moves): :func:`ne_jax.view.frames.render_frame` over an orbit of cameras, after a warm-up.
+2. **An edit on a 100,000-point model**: the tiny model's cloud resampled to 100,000 points (copies
+   jittered by a tenth of the median spacing), then the viewer's steps timed one by one: select a box
+   region, move it, make the edited model zero-shot (:func:`~ne_jax.edit.model.edit_model`) and render it.
 
-With ``--reference-path REF`` (a checkout of older code: ``git worktree add REF COMMIT``) each version
-is measured ``--rounds`` times in fresh processes, alternating (``REF``'s ``ne_jax``, then this
-checkout's, then the other way round), and the tables give the best of each, new against
-reference, in the same run.
-
+With ``--reference-path REF`` (older code: ``git worktree add REF COMMIT``) each version is measured
+``--rounds`` times in fresh processes, alternating, and the tables set the best of each side by side.
 Writes ``experiments/results/bench_view.{json,md}``. ``--screenshot PNG`` instead takes the docs'
-picture of the viewer: started on the run, the page opened in headless Chromium (selenium; the
-``view`` and ``test`` extras, Debian's ``chromium`` and ``chromium-driver``), a full-resolution frame
-awaited, points selected with the page's button, the window saved::
+picture: the viewer on the run in headless Chromium (selenium; the ``view`` and ``test`` extras,
+Debian's ``chromium`` and ``chromium-driver``), points selected with the page's button::
 
     python -m experiments.bench_view --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
     python -m experiments.bench_view --run RUN --reference-path REF
@@ -30,6 +23,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import operator
 import os
 import platform
 import shutil
@@ -40,8 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "experiments" / "results"
+from experiments.common import RESULTS, ROOT, against_reference, entry, json_from
 
 
 def _tiny_run(work: Path) -> Path:
@@ -179,14 +172,10 @@ def measure(run: Path, size: int, frames: int, points: int) -> dict:
 def _measure_in(path: str, run: Path, size: int, frames: int, points: int) -> dict:
     """:func:`measure` in a fresh process (nothing compiled yet) with the ``ne_jax`` of the checkout
     at ``path``, and that checkout's commit."""
-    env = dict(os.environ, PYTHONPATH=path + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--run", str(run), "--size", str(size), "--frames",
-           str(frames), "--points", str(points), "--json-only"]
-    res = subprocess.run(cmd, env=env, cwd=path, capture_output=True, text=True)
-    if res.returncode != 0:
-        raise SystemExit(f"{path}: the measurement failed:\n{res.stderr[-3000:]}")
+    args = ["--run", str(Path(run).resolve()), "--size", str(size), "--frames", str(frames), "--points", str(points),
+            "--json-only"]
     head = subprocess.run(["git", "-C", path, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    return {**json.loads(res.stdout.strip().splitlines()[-1]), "commit": head}
+    return {**json_from("bench_view", args, path), "commit": head}
 
 
 def _best(a, b, key: str = ""):
@@ -205,39 +194,32 @@ def _table(new: dict, ref: dict | None) -> list[str]:
     cols = "| | this code | reference | ratio |" if ref else "| | s |"
     rule = "|---|---:|---:|---:|" if ref else "|---|---:|"
 
-    def row(label, get, better="lower", fmt="{}"):
-        a = get(new)
+    def row(label, *path, better="lower"):  # the field at ``path`` of each measurement
+        a = functools.reduce(operator.getitem, path, new)
         if ref is None:
-            return f"| {label} | {fmt.format(a)} |"
-        b = get(ref)
-        ratio = (b / a) if better == "lower" else (a / b)
-        return f"| {label} | {fmt.format(a)} | {fmt.format(b)} | {ratio:.2f}x |"
+            return f"| {label} | {a} |"
+        b = functools.reduce(operator.getitem, path, ref)
+        return f"| {label} | {a} | {b} | {(b / a) if better == 'lower' else (a / b):.2f}x |"
 
-    full, prev = (lambda r: r["fps"][0]), (lambda r: r["fps"][1])
-    e, w = (lambda r: r["edit"]), (lambda r: r["edit"]["warm"])
-    size, psize = new["fps"][0]["size"], new["fps"][1]["size"]
-    lines = ["Frames of the tiny model (median over an orbit; the ratio is how many times faster this code is):", "",
-             cols.replace(" s |", " frames/s |"), rule,
-             row(f"{size} x {size} (full), frames/s", lambda r: full(r)["fps"], "higher"),
-             row(f"{psize} x {psize} (preview), frames/s", lambda r: prev(r)["fps"], "higher"),
-             row(f"{size} x {size}, first frame (compiles), s", lambda r: full(r)["first_frame_s"]), "",
-             f"Edit of the cloud resampled to {new['edit']['points']} points ({new['edit']['selected']} selected by a "
-             f"box, moved and turned 30 degrees; then a second edit, {new['edit']['warm']['selected']} points):", "",
-             cols, rule,
-             row("select (box region), s", lambda r: e(r)["select_s"]),
-             row("move, s", lambda r: e(r)["move_s"]),
-             row("edited model (normals, IST, carried tree), s", lambda r: e(r)["edit_model_s"]),
-             row(f"first render of the edit at {size} x {size} (compiles), s", lambda r: e(r)["render_edited_first_s"]),
-             row("**select + move + re-render** (the first edit: compiles the edit path), s",
-                 lambda r: e(r)["select_move_rerender_s"]),
-             row("second edit: select, move, edited model, s", lambda r: w(r)["edit_model_s"]),
-             row("its render, s", lambda r: w(r)["render_s"]),
-             row("**select + move + re-render, compiled** (the viewer warms up at start), s",
-                 lambda r: w(r)["select_move_rerender_s"]),
-             row("next render of the first edit, s", lambda r: e(r)["render_edited_s"]),
-             row(f"render of the unedited {new['edit']['points']}-point model, s", lambda r: e(r)["render_unedited_s"]),
-             ""]
-    return lines
+    size, psize, e = new["fps"][0]["size"], new["fps"][1]["size"], new["edit"]
+    return ["Frames of the tiny model (median over an orbit; the ratio is how many times faster this code is):", "",
+            cols.replace(" s |", " frames/s |"), rule,
+            row(f"{size} x {size} (full), frames/s", "fps", 0, "fps", better="higher"),
+            row(f"{psize} x {psize} (preview), frames/s", "fps", 1, "fps", better="higher"),
+            row(f"{size} x {size}, first frame (compiles), s", "fps", 0, "first_frame_s"), "",
+            f"Edit of the cloud resampled to {e['points']} points ({e['selected']} selected by a box, moved and "
+            f"turned 30 degrees; then a second edit, {e['warm']['selected']} points):", "", cols, rule,
+            row("select (box region), s", "edit", "select_s"), row("move, s", "edit", "move_s"),
+            row("edited model (normals, IST, carried tree), s", "edit", "edit_model_s"),
+            row(f"first render of the edit at {size} x {size} (compiles), s", "edit", "render_edited_first_s"),
+            row("**select + move + re-render** (the first edit: compiles the edit path), s", "edit",
+                "select_move_rerender_s"),
+            row("second edit: select, move, edited model, s", "edit", "warm", "edit_model_s"),
+            row("its render, s", "edit", "warm", "render_s"),
+            row("**select + move + re-render, compiled** (the viewer warms up at start), s", "edit", "warm",
+                "select_move_rerender_s"),
+            row("next render of the first edit, s", "edit", "render_edited_s"),
+            row(f"render of the unedited {e['points']}-point model, s", "edit", "render_unedited_s"), ""]
 
 
 def _wait(cond, what: str, timeout: float = 300.0) -> None:
@@ -321,13 +303,10 @@ def main(argv=None) -> int | None:
     t_start = time.perf_counter()
     load = os.getloadavg()[0]
     ref = None
-    if args.reference_path:  # alternate the order, so that load on a shared machine hits both alike
+    if args.reference_path:
         versions = {"reference": args.reference_path, "new": str(ROOT)}
-        rounds: dict[str, list] = {"reference": [], "new": []}
-        for i in range(args.rounds):
-            for name in (("reference", "new") if i % 2 == 0 else ("new", "reference")):
-                rounds[name].append(_measure_in(versions[name], run, args.size, args.frames, args.points))
-                print(name, rounds[name][-1], flush=True)
+        rounds = against_reference(lambda name: _measure_in(versions[name], run, args.size, args.frames, args.points),
+                                   args.rounds)
         ref, new = (functools.reduce(_best, rounds[name]) for name in ("reference", "new"))
     else:
         new = measure(run, args.size, args.frames, args.points)
@@ -359,8 +338,5 @@ def main(argv=None) -> int | None:
     print("\n".join(lines))
 
 
-if __name__ == "__main__":  # not common.entry: with --reference-path this file runs against older code
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)  # as `ne-jax` does: a host device per core, huge pages (restarts)
-    sys.exit(main())
+if __name__ == "__main__":
+    entry(main)

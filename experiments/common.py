@@ -33,6 +33,11 @@ def entry(main, huge_pages: bool = True) -> None:
     sys.exit(main())
 
 
+def log(message: str) -> None:
+    """A progress line on stderr, at once."""
+    print(message, file=sys.stderr, flush=True)
+
+
 def machine(python: bool = False, **extra) -> dict:
     """What a results file records of the machine: its CPU count and platform (with ``python``, Python's
     version), then ``extra``."""
@@ -168,6 +173,37 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
                             "rays_at_max_segments": int((found == cap.max_segments).sum()),
                             "rays_overflowing": int((np.asarray(segs.lost().count) > 0).sum())},
             "total_steps": run.total_steps, "projected_train_min": round(run.total_steps * per_step / 60, 1)}
+
+def json_from(module: str, args: list[str], checkout, env: dict | None = None) -> dict:
+    """The JSON object ``python -m experiments.<module> *args`` prints last, run in a fresh process (its
+    environment ``env``, default this one's) with the ``ne_jax`` of ``checkout`` (a checkout of older
+    code, or :data:`ROOT`) and this checkout's :mod:`experiments` (from a folder holding only a link to
+    it, first on the path)."""
+    import json
+    import subprocess
+    import tempfile
+
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = str(checkout) + os.pathsep + env.get("PYTHONPATH", "")
+    with tempfile.TemporaryDirectory() as here:
+        (Path(here) / "experiments").symlink_to(ROOT / "experiments")
+        res = subprocess.run([sys.executable, "-m", f"experiments.{module}", *args], env=env, cwd=here,
+                             capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"experiments.{module} with {checkout}'s ne_jax failed:\n{res.stderr[-4000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def against_reference(measure, rounds: int) -> dict[str, list]:
+    """``{"reference": [...], "new": [...]}``: ``measure(name)`` ``rounds`` times for each, the one that
+    goes first alternating, so that the load of a shared machine hits both alike."""
+    out = {"reference": [], "new": []}
+    for i in range(rounds):
+        for name in ("reference", "new")[:: -1 if i % 2 else 1]:
+            out[name].append(measure(name))
+            print(name, out[name][-1], flush=True)
+    return out
+
 
 def device_tag() -> str:
     """``cpu``, or the accelerator JAX runs on as a file-name part (``nvidia_h100_80gb_hbm3``): benchmarks

@@ -3,10 +3,9 @@ each take?
 
     python -m experiments.compare_runs RUN_A RUN_B
 
-Loads the latest checkpoint of each run directory (as ``ne-jax eval`` does) and prints, per array of
-the parameters and of the point cloud, the largest absolute difference (``shape`` when the shapes
-differ), then the per-epoch training PSNR and seconds of both (from ``metrics.json``) and the ratio
-of their summed training seconds. Exit code 0 when every array is equal bit for bit, 1 otherwise.
+Loads each run's latest checkpoint (as ``ne-jax eval`` does) and prints per array of the parameters and
+the cloud the largest absolute difference (``shape`` where the shapes differ), then both runs'
+per-epoch training PSNR and seconds and the ratio of their sums. Exit code 0 when every array is equal.
 """
 
 from __future__ import annotations

@@ -3,35 +3,29 @@
     python -m experiments.cost_growth [--steps 3] [--repeats 3] [--render-repeats 2] [--scene-root DIR] [--quick]
 
 The ``default`` preset's configs on the benchmark's ``glossy`` scene (its surface samples as the
-cloud, an untrained colour model: the timings depend on the cloud, the tree and the rays, not on
-what the model has learned), each axis varied alone from one reference (2,048 rays a batch, 100,000
-points, the tree's depth fitted to them, 17; the pool of a 200 px scene of 100 training views):
+cloud, an untrained colour model), each axis varied alone from one reference (2,048 rays a batch,
+100,000 points, the tree's depth fitted to them, 17; the pool of a 200 px scene of 100 training views):
 
 * **batch**: a training step at 1,024 to 8,192 rays;
-* **image**: the ray pool of 100 training views at 200, 400 and 800 px (its host build time, the
-  device bytes it holds, the process's peak memory while building it), a batch drawn from it, and a
-  step on those batches (the same compiled step: it should cost the same at every size);
-* **cloud**: a step on 100,000, 300,000 and 1,000,000 points (the tree's depth fitted: 17, 19, 20);
-  each axis measures its own reference row, as the load of a shared machine drifts;
+* **image**: the ray pool of 100 training views at 200, 400 and 800 px (host build time, device bytes,
+  peak memory), a batch drawn from it, and a step on those batches (it should cost the same);
+* **cloud**: a step on 100,000, 300,000 and 1,000,000 points (the depth fitted: 17, 19, 20);
 * **depth**: a step on 100,000 points with the tree fixed at 17 to 21 levels (the ``paper`` preset's 21);
-* **render**: a test view rendered at 200, 400 and 800 px at the preset's 2 x 2 rays per pixel;
+* **render**: a test view at 200, 400 and 800 px at the preset's 2 x 2 rays per pixel;
 * **round**: the point-cloud round's stages (growth scan of 8,192 rays, prune, denoise, normals) and
   the tree rebuild at 100,000, 300,000 and 1,000,000 points.
 
-Everything runs on one device. A step is compiled ahead of time (XLA's memory analysis of the
-program: arguments, outputs and temporaries) and timed as ``--steps`` steps after one that is not
-counted, best of ``--repeats`` such blocks; a render is best of ``--render-repeats`` after a
-compiling one; a round's stages run twice (the first compiles the scan) and the second is timed.
-Memory: the process's peak resident memory while measuring (Linux ``VmHWM``, reset before each
-measurement through ``/proc/self/clear_refs``), less what it held before (``VmRSS``); on a CPU this is
-the devices' memory too; on a GPU the device's ``peak_bytes_in_use`` is recorded (not reset). Each row
-has its ratio to its axis's reference row, the ratio of the work (rays, pixels, points, tree levels)
-and their quotient: above 1, the cost grows faster than the work.
+All on one device; each axis measures its own reference row (a shared machine's load drifts). A step
+is compiled ahead of time (XLA's memory analysis of the program) and timed as ``--steps`` steps after
+an uncounted one, best of ``--repeats`` blocks; a render best of ``--render-repeats`` after a compiling
+one; a round's stages run twice, the second timed. Memory: the process's peak resident memory while
+measuring (``VmHWM``, reset through ``/proc/self/clear_refs``) less what it held before (``VmRSS``),
+and a GPU's ``peak_bytes_in_use`` (not reset). Each row has its ratio to its axis's reference row, the
+ratio of the work (rays, pixels, points, levels) and their quotient: above 1, the cost grows faster.
 
-Scenes are generated with the ray caster into ``--scene-root`` as :mod:`experiments.gpu_check` does
-(the same 200 and 800 px scenes, and a 400 px one). Writes ``cost_growth.{json,md}`` (on an
-accelerator ``cost_growth_<device>``; ``--quick``: ``cost_growth_quick``, a smoke test at toy sizes)
-to ``--out-dir``.
+Scenes as :mod:`experiments.gpu_check` makes them (its 200 and 800 px ones and a 400 px one) in
+``--scene-root``. Writes ``cost_growth.{json,md}`` (``cost_growth_<device>`` on an accelerator,
+``cost_growth_quick`` with ``--quick``, a smoke test at toy sizes) to ``--out-dir``.
 """
 
 from __future__ import annotations
@@ -40,7 +34,6 @@ import argparse
 import dataclasses
 import functools
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -53,11 +46,11 @@ REFERENCE = {"batch": 2048, "image": 200, "cloud": 100_000, "depth": 17, "render
 
 @dataclasses.dataclass(frozen=True)
 class Axes:
-    """The values each axis takes (the reference is :data:`REFERENCE`'s, or the first)."""
+    """The values each axis takes (the reference is :data:`REFERENCE`'s, or the first); ``images``: scene
+    presets (:class:`~ne_jax.benchmark.generate.BenchmarkPreset`), one per image size."""
 
     batch: tuple[int, ...]
     images: tuple[object, ...]
-    """Scene presets (:class:`~ne_jax.benchmark.generate.BenchmarkPreset`), one per image size."""
     clouds: tuple[int, ...]
     depths: tuple[int, ...]
     grow_rays: int
@@ -314,9 +307,8 @@ def references(a: Axes) -> dict:
     """The reference value of each axis: :data:`REFERENCE`'s, or each axis's first at ``--quick``."""
     if not a.quick:
         return dict(REFERENCE)
-    first = {"batch": a.batch[0], "image": a.images[0].resolution, "cloud": a.clouds[0], "depth": a.depths[0],
-             "render": a.images[0].resolution, "round": a.clouds[0]}
-    return first
+    return {"batch": a.batch[0], "image": a.images[0].resolution, "cloud": a.clouds[0], "depth": a.depths[0],
+            "render": a.images[0].resolution, "round": a.clouds[0]}
 
 
 def work(row: dict, ref: dict) -> float:
@@ -397,7 +389,7 @@ def main(argv=None) -> int:
     if min(args.steps, args.repeats, args.render_repeats) < 1:
         raise SystemExit("--steps, --repeats, --render-repeats: expected at least 1 each")
     res = study(axes(args.quick), args.scene_root, args.steps, args.repeats, args.render_repeats,
-                log=lambda m: print(m, file=sys.stderr, flush=True))
+                log=common.log)
     res.update(command=common.command("cost_growth", argv), commit=common.commit())
     tag = common.device_tag()
     stem = "cost_growth_quick" if args.quick else ("cost_growth" if tag == "cpu" else f"cost_growth_{tag}")

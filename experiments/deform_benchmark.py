@@ -9,19 +9,16 @@ zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
     python -m experiments.deform_benchmark --by-kind experiments/results/deform_benchmark_tiny.json  # by kind
 
 For each scene: the full model and every variant that needs its own model are trained with the
-preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``: a finished run is reused), then
-for each edit and variant: :func:`~ne_jax.edit.model.edit_model` (zero-shot, scored on the edited
-ground truth) and :func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` epochs on the edited
-scene's training views (scored again). Writes ``experiments/results/deform_benchmark_<preset>.json``
-and ``.md`` after every (scene, edit), and a figure grid ``deform_benchmark_<preset>.png`` (test view
-0: ground truth, then each variant zero-shot); on a path-traced ``--root`` (its ``scene.json`` names
-the renderer) the name is ``deform_benchmark_<preset>_pt``. ``--set FIELD.PATH=VALUE`` changes a field of
-the preset (as ``ne-jax train --set`` does; recorded in the results). Every record and its figure image are
-cached in ``<runs>/<scene>/records/<config key>/<edit>/`` (the key of the preset with its ``--set``
-changes): a re-run, or one with more variants, measures only what is missing, and another config
-measures anew. ``--by-kind RESULTS.json`` writes ``<stem>_by_kind.md`` next to a results file: per
-variant, the mean PSNR over the scenes of each kind of edit (:data:`KINDS`), with the mean SSIM and
-LPIPS over every edit.
+preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``), then for each edit and variant
+:func:`~ne_jax.edit.model.edit_model` (zero-shot, scored on the edited ground truth) and
+:func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` epochs on the edited scene's training
+views (scored again). Writes ``experiments/results/deform_benchmark_<preset>[_pt].{json,md}`` after
+every (scene, edit) (``_pt`` on a path-traced ``--root``) and a figure grid ``.png`` (test view 0:
+ground truth, then each variant zero-shot). ``--set FIELD.PATH=VALUE`` changes a field of the preset
+(recorded). Every record and its figure image are cached in ``<runs>/<scene>/records/<config
+key>/<edit>/``: a re-run measures only what is missing, another config anew. ``--by-kind RESULTS.json``
+writes ``<stem>_by_kind.md`` beside a results file: per variant, the mean PSNR over the scenes of each
+kind of edit (:data:`KINDS`), and the mean SSIM and LPIPS over every edit.
 """
 
 from __future__ import annotations

@@ -1,14 +1,12 @@
 """What declaring a scene's effects buys: each benchmark scene trained with the effects its
-``scene.json`` declares and with every effect on (``--effects all``), in one run: training time,
-time per test image (wall and this process's CPU time), parameters, test PSNR and SSIM. With
-``--each-effect``, a scene that leaves out several effects is also trained with each of them
-switched on alone (what each one costs and buys on its own).
+``scene.json`` declares and with every effect on, in one run: training time, time per test image
+(wall and this process's CPU time), parameters, test PSNR and SSIM; with ``--each-effect`` also each
+left-out effect switched on alone, where a scene leaves out several.
 
     python -m experiments.effects_study --root BENCH/tiny --preset tiny --runs RUNS --out effects_study_tiny
 
-Run it pinned to one core (``taskset -c 0``) so that its CPU times are one core's. Writes
-``experiments/results/<out>.{json,md}``. Runs are cached in ``--runs`` (a finished run is read back,
-its recorded training time kept, and the CPU time the training loop recorded).
+Pin it to one core (``taskset -c 0``) for one core's CPU times. Writes ``<out>.{json,md}`` to
+``experiments/results``; runs are cached in ``--runs`` (a finished run keeps its recorded times).
 """
 
 from __future__ import annotations

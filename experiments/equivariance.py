@@ -1,23 +1,20 @@
 """Equivariance of edits: a trained model moved rigidly must render as the original seen from moved
 cameras (:mod:`ne_jax.edit.fidelity`). Two tables per model:
 
-* **motions**: rotations about three axes (two tilted) at several angles, a translation, and a
-  uniform scaling (reported apart: the density's length unit does not scale with it), each edited
-  with the tree carried through the edit (``EditConfig()``, the default) and rebuilt
-  (``EditConfig(rebuild_tree=True)``, the paper); PSNR between the edited render from moved test cameras and the
-  unedited render;
-* **diagnosis** (``--diagnose``): one rotation edited with one stage of the pipeline held at its
-  exact value, or switched, at a time: the tree (rebuilt, its spacing kept; the partition kept with
-  re-fitted world boxes and re-chosen candidate sets; with kept candidate sets; boxes carried in their
-  frames), the exact KNN instead of candidate sets, normals and ISTs (re-estimated, or moved exactly),
-  the IST's filling and smoothing, and the IST effect off.
+* **motions**: rotations about three axes (two tilted) at several angles, a translation and a uniform
+  scaling (apart: the density's length unit does not scale with it), each edited with the tree
+  carried (``EditConfig()``, the default) and rebuilt (``rebuild_tree=True``, the paper): PSNR between
+  the edited render from moved test cameras and the unedited render;
+* **diagnosis** (``--diagnose``): one rotation with one stage of the pipeline held exact, or switched,
+  at a time: the tree (rebuilt, its spacing kept; the partition kept with re-fitted world boxes and
+  re-chosen or kept candidate sets; boxes carried in their frames), the exact KNN, normals and ISTs
+  (re-estimated, or moved exactly), the IST's filling and smoothing, the IST effect off.
 
     python -m experiments.equivariance --runs RUN [RUN ...] [--views 4] [--diagnose] [--out NAME]
     python -m experiments.equivariance --summarize experiments/results/equivariance_*tiny*.json --out NAME
 
-Writes ``experiments/results/<NAME>.json`` and ``.md`` (default ``equivariance``); ``--summarize``
-writes ``<NAME>.md`` alone, one table from several results files: every model's PSNR per motion, the
-tree carried and rebuilt, and the worst rigid motion per model (the sources listed under it).
+Writes ``experiments/results/<NAME>.{json,md}`` (default ``equivariance``); ``--summarize`` writes
+``<NAME>.md`` alone: every model of several results files per motion, and the worst rigid motion.
 """
 
 from __future__ import annotations

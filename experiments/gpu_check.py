@@ -6,32 +6,24 @@
 Within ``--budget-s`` seconds (start-up and scene generation aside), in this order:
 
 1. **devices**: what JAX sees (kind, platform, memory limit), jax and jaxlib versions;
-2. **rates**: rays per second of the ``default`` and ``paper`` training steps
-   (:func:`experiments.common.time_steps`: timed steps after a compiling one, the packing budget
-   fitted as training fits it) and of a test render (``render_image`` of test view 0 at test time, best
-   of ``repeats`` after a compiling call), each on its scene's ground-truth surface samples (the
-   preset's cloud size) with an untrained colour model: the timings depend on the cloud and the
-   tree, not on what the model has learned;
-3. **a whole ``default`` run** end to end on a 200 px scene (carving, its 12 epochs and 7
-   point-cloud rounds, checkpoints), scored on the scene's test views;
-4. **the ``paper`` preset on an 800 px scene** (100 training views), its schedule shortened to four
-   epochs with one point-cloud round after the second, each epoch's steps sized from the paper step's
-   rate so the run ends within what is left of the budget; it trains epoch by epoch, each call resuming
-   from the last epoch's checkpoint, stops early when the next epoch would not fit, and is scored on a
-   few test views. The full run is projected from it: 80,000 steps at the step time of its epochs
-   that compiled nothing, 9 rounds at its round's time, and 200 test views at its time per view
-   after the first (the first compiles).
+2. **rates**: rays per second of the ``default`` and ``paper`` training steps (``common.time_steps``)
+   and of a test render (``common.time_test_render``, test view 0), each on its scene's ground-truth
+   surface samples (the preset's cloud size) with an untrained colour model: the timings depend on
+   the cloud and the tree, not on what the model has learned;
+3. **a whole ``default`` run** on a 200 px scene (carving, 12 epochs, 7 rounds, checkpoints), scored
+   on the scene's test views;
+4. **the ``paper`` preset on an 800 px scene** (100 training views) shortened to four epochs with a
+   round after the second, each epoch's steps sized from the paper step's rate to end within what is
+   left of the budget; it trains epoch by epoch, each call resuming from the last checkpoint, stops
+   early when the next epoch would not fit, and is scored on a few test views. The full run is
+   projected from it: 80,000 steps at the step time of its epochs that compiled nothing, 9 rounds at
+   its round's time, 200 test views at its time per view after the first (the first compiles).
 
-Peak memory is read after each part (on a GPU ``memory_stats()['peak_bytes_in_use']``; everywhere
-the process's peak resident memory). The scenes are the benchmark's ``glossy`` scene generated with
-the ray caster (Open3D) into ``--scene-root`` and kept there: generate them where Open3D is installed
-and carry the folder to a machine without it (docs/devices.md). The models declare the scene's
-effects as ``ne-jax train`` does. ``--tiny``: every part at a toy size (16 and 24 px scenes, a few
-thousand points, a few steps) for a smoke test on a CPU.
-
-Writes ``gpu_check_<device>.json`` and ``.md`` (``gpu_check_tiny_<device>`` with ``--tiny``) to
-``--out-dir`` (default ``experiments/results``); ``<device>`` is ``jax.devices()[0].device_kind`` as
-a file-name part (``cpu`` on a CPU).
+Peak memory is read after each part (a GPU's ``peak_bytes_in_use``; the process's peak resident
+memory). The scenes (the benchmark's ``glossy``, ray-cast with Open3D into ``--scene-root``) can be
+generated elsewhere and carried (docs/devices.md); the models declare the scene's effects as ``ne-jax
+train`` does. ``--tiny``: every part at a toy size, a smoke test on a CPU. Writes
+``gpu_check[_tiny]_<device>.{json,md}`` to ``--out-dir`` (``<device>``: ``common.device_tag``).
 """
 
 from __future__ import annotations
@@ -42,7 +34,6 @@ import math
 import os
 import platform
 import resource
-import sys
 import time
 from pathlib import Path
 
@@ -61,18 +52,15 @@ SCENE_ROOT = Path("/tmp/ne_jax_gpu_check/scenes")
 
 @dataclasses.dataclass(frozen=True)
 class Sizes:
-    """How big each part of the check is."""
+    """How big each part of the check is: the ``default`` and the ``paper`` run's scenes (``small``,
+    ``large``: :class:`~ne_jax.benchmark.generate.BenchmarkPreset`), the timed training steps and
+    renders per preset (after a compiling one), the test views the ``paper`` run is scored on."""
 
     small: object
-    """The ``default`` run's scene (:class:`~ne_jax.benchmark.generate.BenchmarkPreset`)."""
     large: object
-    """The ``paper`` run's scene."""
     rate_steps: int
-    """Timed training steps per preset (after a compiling one)."""
     repeats: int
-    """Timed renders per preset (after a compiling one)."""
     score_views: int
-    """Test views the ``paper`` run is scored on (the first compiles)."""
     tiny: bool
 
 
@@ -183,8 +171,7 @@ def rates(run, scene: Path, steps: int, repeats: int) -> dict:
     built = PointScene.build(points, run.render, run.capacities)
     build_s = time.perf_counter() - t0
     state = init_train_state(run.train, run.render, points, jax.random.key(1))
-    train_split = load_split(scene, "train")
-    pool = build_pool(run.sampler, train_split, run.background)
+    pool = build_pool(run.sampler, load_split(scene, "train"), run.background)
     model = types.SimpleNamespace(state=state, scene=built)  # what time_steps reads of a trained model
     step = common.time_steps(run, model, pool, built, steps)
     view = load_split(scene, "test").take([0])
@@ -395,17 +382,17 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.budget_s <= 0:
         raise SystemExit(f"--budget-s: expected a positive number of seconds, found {args.budget_s}")
-    log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
+    log = common.log
     if args.generate_only:
         for preset in (sizes(args.tiny).small, sizes(args.tiny).large):
             log(f"scene: {scene_dir(preset, args.scene_root, log)}")
         return 0
-    from ne_jax.atomic import atomic_write_json
-
     stem = f"gpu_check{'_tiny' if args.tiny else ''}_{common.device_tag()}"
     known = {"command": common.command("gpu_check", argv), "commit": args.commit or common.commit()}
 
     def save(res):  # the parts so far, marked incomplete
+        from ne_jax.atomic import atomic_write_json
+
         args.out_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_json(args.out_dir / f"{stem}.json", {**res, **known, "complete": False})
 

@@ -7,13 +7,11 @@
     python -m experiments.make_benchmark --preset default_pt --out DIR --scenes glossy cup --originals-only --resume
                                                               # two unedited scenes, continuing a stopped run
 
-Writes the scenes to ``--out/<preset>/``, the contact sheet of each preset to
-``experiments/results/benchmark_contact_sheet_<preset>.png`` and the timings to
-``experiments/results/make_benchmark.json``, and prints a Markdown table. Each scene asked for is
-rendered again and replaces its folder (once it is complete); the other scenes already in
-``--out/<preset>/`` are kept. ``--resume`` keeps the finished scenes asked for as well and continues a
-stopped scene from its last rendered image (the same bytes as an uninterrupted run; the times are
-summed over sittings).
+Writes the scenes to ``--out/<preset>/`` (a scene asked for replaces its folder once complete; the
+others there are kept), to ``experiments/results`` each preset's contact sheet
+(``benchmark_contact_sheet_<preset>.png``) and the timings (``make_benchmark.json``), and prints a
+table. ``--resume`` keeps the finished scenes asked for too and continues a stopped one from its last
+image (the same bytes as an uninterrupted run; times summed over sittings).
 """
 
 from __future__ import annotations
@@ -62,34 +60,23 @@ def main(argv=None) -> None:
                               title=f"ne_jax procedural benchmark, preset {name!r} (test view at 45 degrees)")
         size = sum(p.stat().st_size for scene in report["scenes"] for p in (root / scene).rglob("*") if p.is_file())
         rows[name] = {
-            "resolution": preset.resolution,
-            "supersample": preset.supersample,
-            "renderer": preset.renderer,
-            "spp": preset.spp if preset.renderer == "pathtrace" else None,
-            "scenes": n_scenes,
-            "variants_per_scene": 1 + n_edits // n_scenes,
-            "images": images,
-            "seconds": round(report["seconds"], 2),
-            "ms_per_image": round(1000 * report["seconds"] / images, 1),
-            "megabytes": round(size / 2**20, 1),
+            "resolution": preset.resolution, "supersample": preset.supersample, "renderer": preset.renderer,
+            "spp": preset.spp if preset.renderer == "pathtrace" else None, "scenes": n_scenes,
+            "variants_per_scene": 1 + n_edits // n_scenes, "images": images, "seconds": round(report["seconds"], 2),
+            "ms_per_image": round(1000 * report["seconds"] / images, 1), "megabytes": round(size / 2**20, 1),
             "per_scene_seconds": {k: round(v["total"], 2) for k, v in report["scenes"].items()},
-            "contact_sheet": str(sheet.relative_to(RESULTS.parent.parent)),
-            "seed": args.seed,
-            "commit": started_at,
+            "contact_sheet": str(sheet.relative_to(RESULTS.parent.parent)), "seed": args.seed, "commit": started_at,
             "command": "python -m experiments.make_benchmark --presets " + name
                        + (f" --scenes {' '.join(args.scenes)}" if args.scenes else "")
                        + (f" --seed {args.seed}" if args.seed else "")
-                       + (" --originals-only" if args.originals_only else "")
-                       + (" --resume" if args.resume else ""),
+                       + (" --originals-only" if args.originals_only else "") + (" --resume" if args.resume else ""),
         }
         print(f"benchmark[{name}]: {images} images in {report['seconds']:.1f} s "
               f"({1000 * report['seconds'] / images:.0f} ms per image) -> {root}", flush=True)
-    host = machine(python=True, loadavg=[round(x, 2) for x in os.getloadavg()])
-    out = RESULTS / "make_benchmark.json"
+    out, host = RESULTS / "make_benchmark.json", machine(python=True, loadavg=[round(x, 2) for x in os.getloadavg()])
     previous = json.loads(out.read_text()) if out.exists() else {}
     previous.setdefault("presets", {}).update(rows)
-    previous["machine"] = host
-    out.write_text(json.dumps(previous, indent=2) + "\n")
+    out.write_text(json.dumps({**previous, "machine": host}, indent=2) + "\n")
 
     print("\n| preset | resolution | samples / pixel | scenes x variants | images | time | per image | size |")
     print("|---|---|---|---|---|---|---|---|")

@@ -2,23 +2,20 @@
 
     python -m experiments.paper_800px [--budget-s 3000] [--views 3] [--scene-root DIR] [--runs DIR]
 
-The benchmark's ``glossy`` scene ray-cast at 800 x 800 in the NeRF Synthetic layout (100 training and
-200 test views, as a NeRF Synthetic scene has), trained with the ``paper`` preset shortened as
-:func:`experiments.gpu_check.paper_run` does on an accelerator: four epochs with a point-cloud round
-after the second, each epoch a call that resumes from the last one's checkpoint, the steps per epoch
-sized from ``--s-per-step`` to end within ``--budget-s``; then ``--views`` test views scored, each
-timed (the first compiles). The full run (80,000 steps, 9 rounds, 200 test views) is projected from
-it, and the process's peak resident memory is recorded. Writes ``paper_800px.{json,md}`` (on an
-accelerator ``paper_800px_<device>``) to ``--out-dir``.
+The benchmark's ``glossy`` scene ray-cast at 800 x 800 with 100 training and 200 test views (a NeRF
+Synthetic scene's layout), the ``paper`` preset shortened as :func:`experiments.gpu_check.paper_run`
+does (four epochs, a round after the second, each epoch a resumed call, sized from ``--s-per-step`` to
+end within ``--budget-s``), ``--views`` test views scored and timed, the full run (80,000 steps, 9
+rounds, 200 test views) projected, the process's peak resident memory recorded. Writes
+``paper_800px[_<device>].{json,md}`` to ``--out-dir``.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from experiments.common import RESULTS, command, commit, device_tag, entry, write_results
+from experiments.common import RESULTS, command, commit, device_tag, entry, log, write_results
 from experiments.gpu_check import SCENE_ROOT, declared, device_info, paper_run, scene_dir
 
 HOST_MEMORY_GOAL = 16 * 2**30
@@ -77,7 +74,6 @@ def main(argv=None) -> int:
         raise SystemExit("--views: expected at least 1; --budget-s: expected > 0")
     from ne_jax.train.run import RunConfig
 
-    log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     scene = scene_dir(preset(), args.scene_root, log)
     run = declared(RunConfig.paper(), scene)
     res = {"device": device_info(), "scene": str(scene), "commit": commit(), "command": command("paper_800px", argv)}

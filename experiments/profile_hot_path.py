@@ -2,32 +2,21 @@
 
     python -m experiments.profile_hot_path [--reference-path /tmp/ne/prof_ref] [--repeats 5] [--rounds 2] [--quick]
 
-Scene: 100,000 points sampled on the benchmark's glossy surface (the ``default`` preset's cloud
-size), 32-wide random features, the ``default`` render config (tree, K = 16 of 32 candidates,
-s = 4, 6), its tree built here. Rays: a 200 px orbit camera (the ``default`` scenes' size); the
-render batch is one ``default`` chunk (4,096 consecutive pixels through the middle of the image), the
-training batch 2,048 rays, 90% of them hitting the cloud (the sampler draws foreground and silhouette
-band), its packing budget fitted as training fits it.
+The scene, the batches and the method are docs/studies/profile.md's: 100,000 glossy surface samples
+with random features and the ``default`` render config; one 4,096-ray render chunk from a 200 px orbit
+camera and a 2,048-ray training batch (90% hits). Every stage (traversal, packing and sampling, KNN
+weights, integration, MLPs, compositing; the whole render, its VJP, the whole training step, the
+host's tree rebuild per round) is jitted alone on the previous stage's outputs and timed (best of
+``--repeats`` after a compiling call), with XLA's ``cost_analysis`` FLOPs set against a 2048 x 2048
+float32 ``jnp.dot`` of the same run.
 
-Every stage is jitted alone on the inputs the previous stage produced and timed (best of
-``--repeats`` after a compiling call, ``block_until_ready``): traversal (``intersect``), packing
-and sampling (segment packing, ``level_samples``), candidate gather and KNN weights
-(``_per_candidate_weights``), value gather and integration (the rest of ``knn_integrate``), the
-MLPs (``shade``), compositing (unpack + ``composite``); then the whole render of the batch, the
-render's backward pass (a VJP of ``render_rays_with_aux``, forward + backward), the whole training
-step (forward, losses, backward, Adam) and the host side (the tree rebuilt after a point round,
-amortised over an epoch's steps). FLOPs per stage come from XLA's ``cost_analysis`` of the
-compiled stage; achieved GFLOP/s are set against a ``jnp.dot`` of two 2048 x 2048 float32
-matrices measured in the same run.
-
-Old vs new: the whole render and the whole training step are also timed, in subprocesses, with the
-code at ``--reference-path`` (a worktree of the reference commit) and with this checkout,
-alternating, so the ratio is measured in one run on the same (shared) machine; each code starts as
-it starts itself (this checkout, like ``ne-jax``, with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``:
-:mod:`ne_jax._host_memory`; the reference with glibc's defaults). That path runs this file against
-the reference's ``ne_jax``, so the reference must have this checkout's API for the calls
-:func:`whole_calls` makes (a commit since the buffer sizes moved into ``Capacities``).
-Writes ``experiments/results/profile_hot_path.{json,md}``.
+Old vs new: the whole render and training step are also timed in subprocesses with the code at
+``--reference-path`` (a worktree of the reference commit) and this checkout, alternating, each started
+as it starts itself (this checkout with huge pages, :mod:`ne_jax._host_memory`; the reference
+without). That path runs this module, from a folder that holds only a link to this checkout's
+:mod:`experiments`, against the reference's ``ne_jax``, which must have the API :func:`whole_calls`
+calls. Writes
+``experiments/results/profile_hot_path.{json,md}``.
 """
 
 from __future__ import annotations
@@ -35,14 +24,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "experiments" / "results"
+from experiments import common
+from experiments.common import RESULTS, ROOT, bench_cloud, best_time, machine, write_results
+
 CONFIG = "default"
 IMAGE = 200
 TRAIN_RAYS = 2048
@@ -59,19 +48,6 @@ def _commit(path: Path) -> str:
         return head + ("+dirty" if dirty else "")
     except Exception:  # noqa: BLE001
         return "unknown"
-
-
-def best_time(fn, repeats: int) -> float:
-    """Best wall time of ``fn()`` (its result blocked on) over ``repeats`` calls after one warm-up."""
-    import jax
-
-    jax.block_until_ready(fn())
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def flops_of(jitted, *args) -> float | None:
@@ -94,23 +70,15 @@ def build_inputs(quick: bool, run=None):
     import jax.numpy as jnp
     import numpy as np
 
-    from ne_jax.benchmark import scenes as S
     from ne_jax.data import cameras
     from ne_jax.data.rays import Camera, camera_rays
     from ne_jax.geometry.intersect import intersect
-    from ne_jax.geometry.points import PointState
     from ne_jax.render.renderer import PointScene
     from ne_jax.train.run import get_run_preset
 
     run = get_run_preset(CONFIG) if run is None else run
     cfg = run.render
-    n = 20_000 if quick else POINTS
-    smp = S.get_scene("glossy", 1.0)
-    smp = S.surface_samples(smp, n, seed=0)
-    pts = PointState.from_numpy(smp["xyz"].astype(np.float32), feature_dim=cfg.shading.feature_dim,
-                                normal=smp["normal"].astype(np.float32))
-    feat = jax.random.normal(jax.random.key(0), pts.feature.shape) * 0.5
-    pts = pts.replace(feature=feat, conf_logit=jnp.full(pts.conf_logit.shape, 2.0))
+    pts = bench_cloud(20_000 if quick else POINTS, cfg.shading.feature_dim, spread=0.5)
     t0 = time.perf_counter()
     scene = PointScene.build(pts, cfg, run.capacities)
     build_s = time.perf_counter() - t0
@@ -160,8 +128,8 @@ def measure_whole(repeats: int, quick: bool) -> dict:
     import ne_jax
 
     render, step, state = whole_calls(quick)
-    t_render = best_time(lambda: render(state), repeats)
-    t_step = best_time(lambda: step(state)[1]["loss/total"], repeats)
+    t_render = best_time(lambda: render(state), repeats)[1]
+    t_step = best_time(lambda: step(state)[1]["loss/total"], repeats)[1]
     out = step(state)[1]
     # segments lost to the packing budget / to the traversal's capacities
     dropped, overflow = int(out["lost/packing"]), int(out["lost/frontier"]) + int(out["lost/slots"])
@@ -193,13 +161,13 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
     bg = jnp.ones(3)
     a = jnp.ones((2048, 2048), jnp.float32)
     mm = jax.jit(lambda x: x @ x)
-    t_mm = best_time(lambda: mm(a), repeats)
+    t_mm = best_time(lambda: mm(a), repeats)[1]
     peak = 2 * 2048**3 / t_mm
     rows = []
 
     def add(name, kind, rays, fn, *args, flops=None):
         j = jax.jit(fn)
-        t = best_time(lambda: j(*args), repeats)
+        t = best_time(lambda: j(*args), repeats)[1]
         f = flops_of(j, *args) if flops is None else flops
         rows.append({"stage": name, "batch": kind, "rays": rays, "ms": 1e3 * t,
                      "gflop": None if f is None else f / 1e9,
@@ -276,7 +244,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
         add("forward + backward (render VJP)", kind, r, fwd_bwd, state.trainables, sc, rays)
         step = make_train_step(run.train, cfg)
         batch = Batch(rays=rays, pixel=jnp.zeros(r, jnp.int32), in_band=jnp.zeros(r, bool), background=bg)
-        t = best_time(lambda: step(state, sc, batch)[1]["loss/total"], repeats)
+        t = best_time(lambda: step(state, sc, batch)[1]["loss/total"], repeats)[1]
         rows.append({"stage": "whole training step", "batch": kind, "rays": r, "ms": 1e3 * t, "gflop": None,
                      "gflop_per_s": None, "vs_matmul": None})
         print(f"train  whole training step {1e3 * t:9.2f} ms", flush=True)
@@ -295,22 +263,14 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
 
 
 def _child(path: str | None, repeats: int, quick: bool) -> dict:
-    """The whole render and step in a fresh process, each code started as it starts itself: this
-    checkout with huge pages for XLA's scratch memory (as ``ne-jax`` does), the reference without."""
+    """The whole render and step in a fresh process with the ``ne_jax`` at ``path`` (default this
+    checkout's), each code started as it starts itself: this checkout with huge pages for XLA's
+    scratch memory (as ``ne-jax`` does), the reference without."""
     from ne_jax._host_memory import tunables_env
 
     env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
-    if path:
-        env["PYTHONPATH"] = path + os.pathsep + env.get("PYTHONPATH", "")
-    else:
-        env = tunables_env(env) or env
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--whole-only", "--repeats", str(repeats)]
-    if quick:
-        cmd.append("--quick")
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=path or str(ROOT))
-    if res.returncode != 0:
-        raise RuntimeError(res.stderr[-4000:])
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    args = ["--whole-only", "--repeats", str(repeats)] + ["--quick"] * quick
+    return common.json_from("profile_hot_path", args, path or ROOT, env if path else tunables_env(env) or env)
 
 
 def _pct(v):
@@ -361,14 +321,8 @@ def main(argv=None) -> None:
         return
     import jax
 
-    from experiments.common import write_results
-
-    whole = {"reference": [], "new": []}
     paths = {"reference": args.reference_path, "new": None}
-    for i in range(args.rounds):  # alternate the order, so load on the shared machine hits both alike
-        for name in (("reference", "new") if i % 2 == 0 else ("new", "reference")):
-            whole[name].append(_child(paths[name], args.repeats, args.quick))
-            print(name, whole[name][-1], flush=True)
+    whole = common.against_reference(lambda name: _child(paths[name], args.repeats, args.quick), args.rounds)
     best = {k: {**v[0], "render_rays_per_s": max(x["render_rays_per_s"] for x in v),
                 "step_rays_per_s": max(x["step_rays_per_s"] for x in v)} for k, v in whole.items()}
     prof = profile_stages(args.repeats, args.quick)
@@ -376,7 +330,7 @@ def main(argv=None) -> None:
         "command": "python -m experiments.profile_hot_path" + (" --quick" if args.quick else ""),
         "commit": _commit(ROOT), "reference_commit": _commit(Path(args.reference_path)), "config": CONFIG,
         "device": str(jax.devices()[0]), "jax": jax.__version__,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "machine": machine(),
         "profile": prof, "whole": best, "whole_rounds": whole,
         "ratio": {"render": best["new"]["render_rays_per_s"] / best["reference"]["render_rays_per_s"],
                   "step": best["new"]["step_rays_per_s"] / best["reference"]["step_rays_per_s"]},

@@ -6,16 +6,13 @@
     python -m experiments.train_benchmark --preset default --root DIR --runs RUNS --resume  # continue stopped runs
     python -m experiments.train_benchmark --preset tiny --root BENCH/tiny_pt --runs RUNS  # the path-traced variant
 
-For every scene: generate it (unless ``--root``), train with the preset's :class:`RunConfig`
-(initial cloud by visual-hull carving), evaluate the test views (full images on the run's
-background) and measure the Chamfer distance of the initial and the optimised cloud to the scene's
-ground-truth surface samples (used here only as the reference), once over all samples and once
-with the completeness over only the samples a training camera sees (hidden surfaces, such as the
-inside of overlapping parts, cannot be recovered from images). Writes
-``experiments/results/train_benchmark_<preset>.json`` and a Markdown table
-(``train_benchmark_<preset>.md``), printed as well; on a path-traced ``--root`` (its ``scene.json``
-names the renderer) the name is ``train_benchmark_<preset>_pt``, so the two variants of one preset
-keep separate results. The run directories go to ``--runs``.
+For every scene: generate it (unless ``--root``), train with the preset's :class:`RunConfig` (the
+cloud carved from the visual hull), score the test views (full images on the run's background) and
+the Chamfer distance of the initial and the optimised cloud to the scene's ground-truth surface
+samples, over all samples and with the completeness over only the samples a training camera sees
+(a hidden surface cannot be recovered from images). Writes ``train_benchmark_<preset>.{json,md}`` to
+``experiments/results`` (``<preset>_pt`` on a path-traced ``--root``, whose ``scene.json`` names the
+renderer); the run directories go to ``--runs``.
 """
 
 from __future__ import annotations
