@@ -16,12 +16,18 @@ from tests.mini_presets import mini_benchmark
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
+def scene_dir(tmp_path_factory):
+    """This module's blocks scene (12 training views): its own folder, not whichever ``bench*`` folder
+    another test module of the same worker left in the base temp directory."""
     root = tmp_path_factory.mktemp("bench")
     generate_scene("blocks", mini_benchmark(resolution=64, train_views=12, surface_samples=20_000), root, edits=())
-    split = load_split(root / "blocks", "train")
-    cols = read_ply(root / "blocks" / "points.ply")
-    return Views.from_split(split), np.stack([cols[c] for c in "xyz"], 1).astype(np.float64)
+    return root / "blocks"
+
+
+@pytest.fixture(scope="module")
+def scene(scene_dir):
+    cols = read_ply(scene_dir / "points.ply")
+    return Views.from_split(load_split(scene_dir, "train")), np.stack([cols[c] for c in "xyz"], 1).astype(np.float64)
 
 
 def _patch_rays(views, surface, centre, radius):
@@ -88,7 +94,7 @@ def test_box_stretch_against_a_loop():
             assert st[i, 0] >= st[i, 1] - 1e-9
 
 
-def test_a_round_refills_a_patch_cut_from_a_trained_cloud(scene, tmp_path_factory):
+def test_a_round_refills_a_patch_cut_from_a_trained_cloud(scene, scene_dir, tmp_path_factory):
     """A model trained a few steps, its cloud with a patch cut out: a round with ``fill_holes``
     grows points back inside the patch (the plain scan alone adds few there, near its edge)."""
     import jax
@@ -101,8 +107,6 @@ def test_a_round_refills_a_patch_cut_from_a_trained_cloud(scene, tmp_path_factor
     from tests.mini_presets import short_run
 
     views, surface = scene
-    root = tmp_path_factory.getbasetemp()
-    scene_dir = next(root.glob("bench*/blocks"))
     run = short_run(steps_per_epoch=20)
     model = train(run, scene_dir, tmp_path_factory.mktemp("run") / "m", progress=False, log=lambda s: None)
     points = model.scene.points
