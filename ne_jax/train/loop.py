@@ -392,8 +392,9 @@ def _epoch_line(r: dict) -> str:
         line += f", {r['skipped']} step(s) refused (non-finite: {', '.join(r.get('non_finite', []))})"
     lost = r["lost"]
     if lost["frontier"] or lost["slots"] or lost["packing"]:
-        line += (f", lost (capacities grown): {lost['frontier']} frontier nodes, {lost['slots']} segments beyond "
-                 f"the slots, {lost['packing']} beyond the packing budget")
+        # TRAINING_GROWS: only the packing budget grows; the traversal's losses are counted
+        line += (f", lost: {lost['frontier']} frontier nodes and {lost['slots']} segments beyond the slots "
+                 f"(counted), {lost['packing']} beyond the packing budget (grown)")
     if "points" in r:
         p = r["points"]
         g = p.get("grown", {})
