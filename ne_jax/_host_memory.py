@@ -19,8 +19,8 @@ in a script). ``NE_JAX_HOST_MEMORY=system`` keeps glibc's defaults.
 What they save: docs/decisions.md, huge pages.
 
 Keeping the scratch memory mapped instead (``mallopt``: one arena, no separate mappings) removes
-the faults too, but funnels every thread through one arena lock: compiles slow down, and a ``tiny``
-training took 1.2x as long (the same benchmark at commit 3d0d52c, which did that).
+the faults too, but funnels every thread through one arena lock, and compiles slow down
+(docs/decisions.md, huge pages).
 """
 
 from __future__ import annotations

@@ -24,21 +24,12 @@ The result is the *visual hull*, not the surface: concavities that no silhouette
 inside of a cup seen from outside) stay filled, and the hull is only as sharp as the masks (one
 pixel at the object's distance). Optional photo-consistency sweeps (``cfg.photo_iters``, off by
 default; :func:`photo_consistency`) remove shell voxels whose colours disagree across the views
-that see them (visibility by a z-buffer of the shell); on the tiny benchmark 5 sweeps lowered the
-Chamfer distance of blocks from 0.045 to 0.040, left stool and glossy within 0.0003 and raised cup
-from 0.0367 to 0.0370 (there it keeps removing ~300 voxels per sweep; the cause is not analysed),
-so they stay opt-in.
-Growing and pruning during training are what refine the cloud further.
+that see them (visibility by a z-buffer of the shell). Growing and pruning during training are what
+refine the cloud further.
 
-Snapping puts points *on the hull* (analytic sphere, 40 views: mean error 0.04 voxel sizes instead
-of 0.48). Where the hull is loose (concavities), unsnapped points half a voxel inside it happen to
-lie slightly closer to the true surface: on the tiny benchmark (docs/decisions.md, the initial cloud)
-snapping lowered the symmetric Chamfer distance on stool and glossy and raised it on cup and blocks,
-mean over the four scenes 0.0287 snapped vs 0.0281 unsnapped (world units, 128^3 voxels of 0.017).
-
-Time (2 CPU cores, shared with other jobs, so noisy): a 128^3 grid carved by 100 views of
-200 x 200 with 100,000 snapped points took 3.6-5.2 s on a quiet machine and up to ~30 s under
-load; the tiny benchmark (24 views of 64 x 64, 128^3, 20,000 points) 0.6-6 s per scene.
+Snapping puts points *on the hull*. Where the hull is loose (concavities), unsnapped points half a
+voxel inside it can lie slightly closer to the true surface. What the sweeps, the snapping and the
+carving's time come to on the benchmark: docs/decisions.md, "The initial cloud".
 
 Shapes: ``V`` views, ``H x W`` images, ``N`` points.
 """

@@ -29,15 +29,9 @@ Orientation (``cfg.orient``) — PCA gives an axis, not a sign:
 ``"none"``
     Open3D's arbitrary signs.
 
-Measured on the four benchmark scenes at the ``tiny`` preset (docs/decisions.md, the initial cloud:
-``initial_cloud.json``, block ``orientation``): fraction of normals with
-``cos > 0`` to the nearest ground-truth normal, mean over the scenes, on carved clouds and on the
-ground-truth samples' positions: ``visibility`` 0.95 / 0.87, ``tangent_plane`` 0.94 / 0.76,
-``visibility_votes`` 0.87 / 0.80, ``nearest_camera`` 0.76 / 0.65, ``none`` 0.47 / 0.50. ``visibility``
-is the default. ``tangent_plane`` is excellent on one closed hull but
-takes a single global sign, which flips whole parts of multi-part clouds; it is also 5-20x slower.
-Time: 100,000 points, 100 views of 200 x 200, ``"visibility"``: 1.8 s on a quiet 2-core machine
-(6.3 s under load).
+``visibility`` is the default. ``tangent_plane`` suits one closed hull but takes a single global
+sign, which flips whole parts of multi-part clouds. How often each rule faces the normals out, and
+what they cost: docs/decisions.md, "The initial cloud".
 
 Degenerate input: an empty cloud gives ``[0, 3]``; a cloud with fewer than 3 distinct points, or
 whose points are collinear, gets unit normals perpendicular to its line (any perpendicular for a
