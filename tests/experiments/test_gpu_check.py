@@ -28,7 +28,8 @@ def test_rates_of_a_step_and_a_render(tiny):
     assert r["batch_rays"] == run.sampler.batch_size == 128
     assert r["image_rays"] == 16 * 16 * run.render.pixel_samples ** 2
     assert r["train_rays_per_s"] > 0 and r["render_rays_per_s"] > 0
-    assert math.isclose(r["train_rays_per_s"], r["batch_rays"] / (r["ms_per_step"] / 1e3), rel_tol=1e-3)
+    # rays per second are rounded to a whole number (a slow toy step on a loaded machine: 161 for 160.8)
+    assert math.isclose(r["train_rays_per_s"], r["batch_rays"] / (r["ms_per_step"] / 1e3), rel_tol=1e-3, abs_tol=0.5)
     assert r["memory"]["host_peak_rss_bytes"] > 0 and r["memory"]["device_peak_bytes"] is None  # a CPU keeps none
 
 
