@@ -1,16 +1,11 @@
-"""How fast the viewer (``ne-jax view``) answers, on this machine.
-
-1. **Frames per second** of a ``tiny`` model at 128 x 128 (and the 32 x 32 preview shown while the
-   camera moves): :func:`ne_jax.view.frames.render_frame` over an orbit of cameras, after a warm-up.
-2. **An edit on a 100,000-point model**: the tiny model's cloud resampled to 100,000 points (copies
-   jittered by a tenth of the median spacing), then the viewer's steps timed one by one: select a box
-   region, move it, make the edited model zero-shot (:func:`~ne_jax.edit.model.edit_model`) and render it.
-
-With ``--reference-path REF`` (older code: ``git worktree add REF COMMIT``) each version is measured
-``--rounds`` times in fresh processes, alternating, and the tables set the best of each side by side.
-Writes ``experiments/results/bench_view.{json,md}``. ``--screenshot PNG`` instead takes the docs'
-picture: the viewer on the run in headless Chromium (selenium; the ``view`` and ``test`` extras,
-Debian's ``chromium`` and ``chromium-driver``), points selected with the page's button::
+"""How fast the viewer (``ne-jax view``) answers, on this machine (docs/viewer.md): frames per second of
+a ``tiny`` model at 128 x 128 and at the 32 x 32 preview over an orbit of cameras, and an edit of its
+cloud resampled to 100,000 points with the viewer's steps timed one by one (select a box region, move
+it, the edited model, its render). With ``--reference-path REF`` (older code: ``git worktree add REF
+COMMIT``) each version is measured ``--rounds`` times in fresh processes, alternating, and the tables
+set the best of each side by side. Writes ``experiments/results/bench_view.{json,md}``. ``--screenshot
+PNG`` instead takes the docs' picture of the viewer in headless Chromium (selenium; the ``view`` and
+``test`` extras, Debian's ``chromium`` and ``chromium-driver``)::
 
     python -m experiments.bench_view --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
     python -m experiments.bench_view --run RUN --reference-path REF
@@ -27,14 +22,13 @@ import operator
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from experiments.common import RESULTS, ROOT, against_reference, entry, json_from
+from experiments.common import RESULTS, ROOT, against_reference, entry, json_from, write_results
 
 
 def _tiny_run(work: Path) -> Path:
@@ -174,8 +168,9 @@ def _measure_in(path: str, run: Path, size: int, frames: int, points: int) -> di
     at ``path``, and that checkout's commit."""
     args = ["--run", str(Path(run).resolve()), "--size", str(size), "--frames", str(frames), "--points", str(points),
             "--json-only"]
-    head = subprocess.run(["git", "-C", path, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    return {**json_from("bench_view", args, path), "commit": head}
+    from ne_jax.provenance import git
+
+    return {**json_from("bench_view", args, path), "commit": git("-C", path, "rev-parse", "HEAD")}
 
 
 def _best(a, b, key: str = ""):
@@ -295,7 +290,6 @@ def main(argv=None) -> int | None:
     import jax
 
     from ne_jax import provenance
-    from ne_jax.atomic import atomic_write_json, atomic_write_text
     from ne_jax.config_json import config_key
     from ne_jax.train.model import load_trained
 
@@ -324,8 +318,6 @@ def main(argv=None) -> int | None:
               "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                           "device": jax.devices()[0].platform, "jax": jax.__version__,
                           "load_before": round(load, 2), "load_after": round(load_after, 2)}}
-    RESULTS.mkdir(exist_ok=True)
-    atomic_write_json(RESULTS / "bench_view.json", report)
     against = (f" against the reference {ref['commit'][:12]} in the same run ({args.rounds} alternating rounds of "
                "each, in fresh processes; the best of each)") if ref else ""
     lines = [f"`ne-jax view` on {os.cpu_count()} CPU cores ({jax.devices()[0].platform}, JAX {jax.__version__}; "
@@ -334,8 +326,7 @@ def main(argv=None) -> int | None:
              f"{report['model']['points']} points). Commit {report['commit'][:12]}"
              f"{' (work tree modified)' if modified else ''}{against}; re-run: `{command}`.", "",
              *_table(new, ref)]
-    atomic_write_text(RESULTS / "bench_view.md", "\n".join(lines))
-    print("\n".join(lines))
+    write_results(RESULTS, "bench_view", report, "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -5,12 +5,10 @@ would on their own captures (no masks, a start from SfM points, a learned backgr
     python -m experiments.capture_benchmark --preset tiny --root BENCH/tiny_capture --runs RUNS
     python -m experiments.capture_benchmark --preset tiny --root BENCH/tiny_capture --runs RUNS --layouts colmap
 
-For every scene and layout (``colmap``: the scene folder; ``nerfstudio``: its ``<scene>_ns`` copy)
-the run's effects are decided as ``ne-jax train`` decides them for a capture (``auto``: the
-background sphere for opaque images), the cloud starts from the SfM points (``init.source =
-auto``), and the held-out images (every 8th) are scored on the full image. On the COLMAP copy each
-benchmark edit is then applied zero-shot and, for ``--finetune`` edits, fine-tuned one epoch on the
-edit's ground truth. Writes ``experiments/results/capture_benchmark_<preset>.{json,md}``.
+For every scene and layout (``colmap``: the scene folder; ``nerfstudio``: its ``<scene>_ns`` copy):
+trained as ``ne-jax train`` trains a capture, the held-out images (every 8th) scored on the full image,
+and on the COLMAP copy each benchmark edit zero-shot (``--finetune`` edits also fine-tuned one epoch;
+docs/benchmark.md). Writes ``experiments/results/capture_benchmark_<preset>.{json,md}``.
 """
 
 from __future__ import annotations
@@ -22,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import commit
-from ne_jax.atomic import atomic_write_json, atomic_write_text
+from experiments import common
+from experiments.common import RESULTS, commit, entry
 from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.scenes import SCENES
 from ne_jax.config_json import config_key
@@ -35,7 +33,6 @@ from ne_jax.train.loop import train
 from ne_jax.train.model import load_trained
 from ne_jax.train.run import get_run_preset
 
-RESULTS = Path(__file__).resolve().parent / "results"
 LAYOUTS = {"colmap": "{scene}", "nerfstudio": "{scene}_ns"}
 
 
@@ -89,8 +86,6 @@ def write_results(preset: str, root: Path, scenes: dict, results: Path) -> str:
                       "fine-tuned one epoch on the COLMAP copy",
               "preset": preset, "root": str(root), "commit": commit(), "scenes": scenes,
               "command": f"python -m experiments.capture_benchmark --preset {preset} --root {root.name} --runs RUNS"}
-    results.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(results / f"capture_benchmark_{preset}.json", report)
     lines = [f"Preset `{preset}` on `{root.name}`, commit {report['commit']}; `{report['command']}`.", "",
              "| scene | COLMAP PSNR (dB) | SSIM | nerfstudio PSNR (dB) | same split | train time (s) | "
              "points SfM start -> final |", "|---|---:|---:|---:|---|---:|---|"]
@@ -114,7 +109,7 @@ def write_results(preset: str, root: Path, scenes: dict, results: Path) -> str:
             ft = f"{r['finetuned']['psnr']:.2f}" if "finetuned" in r else "-"
             lines.append(f"| {scene} | {e} | {r['zero_shot']['psnr']:.2f} | {ft} |")
     text = "\n".join(lines) + "\n"
-    atomic_write_text(results / f"capture_benchmark_{preset}.md", text)
+    common.write_results(results, f"capture_benchmark_{preset}", report, text, echo=False)
     return text
 
 
@@ -148,7 +143,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    import ne_jax
-
-    ne_jax.setup(huge_pages=True)
-    main()
+    entry(main)

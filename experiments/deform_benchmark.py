@@ -8,17 +8,12 @@ zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
     python -m experiments.deform_benchmark --preset tiny --runs runs/deform1 --set render.pixel_samples=1  # a field
     python -m experiments.deform_benchmark --by-kind experiments/results/deform_benchmark_tiny.json  # by kind
 
-For each scene: the full model and every variant that needs its own model are trained with the
-preset's :class:`~ne_jax.train.run.RunConfig` (cached in ``--runs``), then for each edit and variant
-:func:`~ne_jax.edit.model.edit_model` (zero-shot, scored on the edited ground truth) and
-:func:`~ne_jax.edit.model.finetune` for ``--finetune-epochs`` epochs on the edited scene's training
-views (scored again). Writes ``experiments/results/deform_benchmark_<preset>[_pt].{json,md}`` after
-every (scene, edit) (``_pt`` on a path-traced ``--root``) and a figure grid ``.png`` (test view 0:
-ground truth, then each variant zero-shot). ``--set FIELD.PATH=VALUE`` changes a field of the preset
-(recorded). Every record and its figure image are cached in ``<runs>/<scene>/records/<config
-key>/<edit>/``: a re-run measures only what is missing, another config anew. ``--by-kind RESULTS.json``
-writes ``<stem>_by_kind.md`` beside a results file: per variant, the mean PSNR over the scenes of each
-kind of edit (:data:`KINDS`), and the mean SSIM and LPIPS over every edit.
+Each scene's models are trained with the preset's :class:`~ne_jax.train.run.RunConfig` (``--set
+FIELD.PATH=VALUE`` changes a field, recorded) and cached in ``--runs``; each edit is made zero-shot
+(:func:`~ne_jax.edit.model.edit_model`) and fine-tuned ``--finetune-epochs`` epochs (docs/editing.md).
+Writes ``experiments/results/deform_benchmark_<preset>[_pt].{json,md,png}`` after every (scene, edit);
+every record is cached in ``<runs>/<scene>/records/<config key>/<edit>/`` (a re-run measures only what
+is missing). ``--by-kind RESULTS.json`` writes ``<stem>_by_kind.md`` beside a results file (:data:`KINDS`).
 """
 
 from __future__ import annotations
@@ -27,8 +22,6 @@ import argparse
 import dataclasses
 import io
 import json
-import os
-import platform
 import shlex
 import time
 import zlib
@@ -36,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import RESULTS, benchmark_suffix, cached_run, entry
+from experiments import common
+from experiments.common import RESULTS, benchmark_suffix, cached_run, entry, machine
 from ne_jax.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.generate import generate_benchmark, get_preset
@@ -215,17 +209,14 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
                      "batch_size": full.sampler.batch_size},
         "background": full.background, "seconds": round(seconds, 1), "records": records,
         "unedited": unedited, "commit": commit(short=True), "config_key": config_key(full), "set": list(args.set),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "machine": machine(python=True),
         "command": "python -m experiments.deform_benchmark " + " ".join(
             f"--{k.replace('_', '-')}" + ("" if v is True else f" {' '.join(v) if isinstance(v, list) else v}")
             for k, v in vars(args).items()
             if v not in (None, False, []) and k not in ("runs", "root", "set")
             and not (k == "finetune_epochs" and args.no_finetune))
         + "".join(f" --set {shlex.quote(a)}" for a in args.set)
-        + ("" if benchmark == args.preset else f" --root BENCH/{benchmark}") + " --runs DIR",
-    }
-    RESULTS.mkdir(exist_ok=True)
-    atomic_write_json(RESULTS / f"{out_name}.json", report)
+        + ("" if benchmark == args.preset else f" --root BENCH/{benchmark}") + " --runs DIR"}
     columns = list(dict.fromkeys((r["scene"], r["edit"]) for r in records))
     on = "" if benchmark == args.preset else f" on the `{benchmark}` benchmark"
     lines = [f"Deformation benchmark, preset `{args.preset}`{on} ({full.epochs} x {full.steps_per_epoch} "
@@ -260,7 +251,7 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
             lines.append("| unedited model, own test views | " + " | ".join(cells)
                          + f" | {mean_of(own, 'psnr')} | {mean_of(own, 'ssim')} | {mean_of(own, 'lpips')} |")
         lines.append("")
-    atomic_write_text(RESULTS / f"{out_name}.md", "\n".join(lines))
+    common.write_results(RESULTS, out_name, report, "\n".join(lines), echo=False)
 
 
 def write_figure(out_name: str, figure: dict, variants) -> None:

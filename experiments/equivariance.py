@@ -1,14 +1,11 @@
 """Equivariance of edits: a trained model moved rigidly must render as the original seen from moved
-cameras (:mod:`ne_jax.edit.fidelity`). Two tables per model:
+cameras (:mod:`ne_jax.edit.fidelity`; docs/editing.md). Two tables per model:
 
-* **motions**: rotations about three axes (two tilted) at several angles, a translation and a uniform
-  scaling (apart: the density's length unit does not scale with it), each edited with the tree
-  carried (``EditConfig()``, the default) and rebuilt (``rebuild_tree=True``, the paper): PSNR between
-  the edited render from moved test cameras and the unedited render;
-* **diagnosis** (``--diagnose``): one rotation with one stage of the pipeline held exact, or switched,
-  at a time: the tree (rebuilt, its spacing kept; the partition kept with re-fitted world boxes and
-  re-chosen or kept candidate sets; boxes carried in their frames), the exact KNN, normals and ISTs
-  (re-estimated, or moved exactly), the IST's filling and smoothing, the IST effect off.
+* **motions** (:func:`motions`): rotations, a translation and a uniform scaling, each edited with the
+  tree carried (``EditConfig()``, the default) and rebuilt (``rebuild_tree=True``, the paper): PSNR
+  between the edited render from moved test cameras and the unedited render;
+* **diagnosis** (``--diagnose``, :func:`diagnose`): one rotation with one stage of the edit path held
+  exact, or switched, at a time.
 
     python -m experiments.equivariance --runs RUN [RUN ...] [--views 4] [--diagnose] [--out NAME]
     python -m experiments.equivariance --summarize experiments/results/equivariance_*tiny*.json --out NAME
@@ -27,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import RESULTS, entry
-from ne_jax.atomic import atomic_write_json, atomic_write_text
+from experiments.common import RESULTS, entry, write_results
+from ne_jax.atomic import atomic_write_text
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.edit.apply import EditConfig, apply_edit, edit_context, edited_render_config
 from ne_jax.edit.deformations import Edit, rigid_scene
@@ -96,7 +93,8 @@ def measure_motions(model, cameras, pts, pivot, log) -> tuple[list[dict], np.nda
 
 
 def diagnose(model, cameras, pts, pivot, ref, log) -> list[dict]:
-    """One rotation, one stage at a time (module docstring)."""
+    """One rotation (:data:`DIAGNOSE`) with one stage of the edit path held exact, or switched, at a time
+    (each row's label says which): the tree, the KNN, normals and ISTs, the IST's filling, the IST effect."""
     run = model.run
     near, far = run.sampler.near, run.sampler.far
     name, angle = DIAGNOSE
@@ -141,8 +139,6 @@ def diagnose(model, cameras, pts, pivot, ref, log) -> list[dict]:
 
 
 def write(out: str, results: list[dict], command: str) -> None:
-    RESULTS.mkdir(exist_ok=True)
-    atomic_write_json(RESULTS / f"{out}.json", {"commit": commit(short=True), "command": command, "models": results})
     lines = [f"Equivariance of edits: PSNR (dB) between the edited model seen from moved test cameras and the "
              f"unedited model ({commit(short=True)}; re-run: `{command}`). 120 = identical renders.", ""]
     for res in results:
@@ -157,8 +153,7 @@ def write(out: str, results: list[dict], command: str) -> None:
                       "| stage | PSNR |", "|---|---:|"]
             lines += [f"| {r['stage']} | {r['psnr']:.2f} |" for r in res["diagnosis"]]
             lines.append("")
-    atomic_write_text(RESULTS / f"{out}.md", "\n".join(lines))
-    print("\n".join(lines))
+    write_results(RESULTS, out, {"commit": commit(short=True), "command": command, "models": results}, "\n".join(lines))
 
 
 def _worst(motions: list[dict], tree: str) -> float:
