@@ -24,7 +24,7 @@ from experiments import common
 from experiments.common import RESULTS, commit, entry
 from ne_jax.benchmark.edits import benchmark_edit
 from ne_jax.benchmark.scenes import SCENES
-from ne_jax.config_json import config_key
+from ne_jax.config_json import config_key, config_set
 from ne_jax.data.scene import load_split, scene_points
 from ne_jax.edit.model import edit_model, finetune, model_edit_context
 from ne_jax.eval import evaluate_model
@@ -44,8 +44,10 @@ def _score(model, scene_dir: Path) -> dict:
             "views": list(split.file_paths), "eval_seconds": round(time.perf_counter() - t0, 1)}
 
 
-def run_layout(preset: str, scene_dir: Path, run_dir: Path, resume: bool) -> tuple[object, dict]:
-    run = get_run_preset(preset)
+def run_layout(preset: str, scene_dir: Path, run_dir: Path, resume: bool, sets=()) -> tuple[object, dict]:
+    """Train the preset, with ``sets`` (``FIELD.PATH=VALUE`` changes), on a capture as ``ne-jax train``
+    does, and score it."""
+    run = config_set(get_run_preset(preset), *sets)
     split = load_split(scene_dir, "train", run.downscale)
     points = scene_points(scene_dir)
     render, effects = declare_effects(run.render, "auto", scene_dir, split, None if points is None else points[0])
@@ -80,12 +82,13 @@ def run_edits(model, scene_dir: Path, runs: Path, finetune_edits: list[str]) -> 
     return out
 
 
-def write_results(preset: str, root: Path, scenes: dict, results: Path) -> str:
+def write_results(preset: str, root: Path, scenes: dict, results: Path, sets=()) -> str:
     report = {"what": "capture variant of the benchmark: opaque images, SfM start, learned background; full-image "
                       "PSNR/SSIM on the held-out images (every 8th), per layout; benchmark edits zero-shot and "
                       "fine-tuned one epoch on the COLMAP copy",
-              "preset": preset, "root": str(root), "commit": commit(), "scenes": scenes,
-              "command": f"python -m experiments.capture_benchmark --preset {preset} --root {root.name} --runs RUNS"}
+              "preset": preset, "root": str(root), "commit": commit(), "set": list(sets), "scenes": scenes,
+              "command": f"python -m experiments.capture_benchmark --preset {preset} --root {root.name} --runs RUNS"
+                         + "".join(f" --set {s}" for s in sets)}
     lines = [f"Preset `{preset}` on `{root.name}`, commit {report['commit']}; `{report['command']}`.", "",
              "| scene | COLMAP PSNR (dB) | SSIM | nerfstudio PSNR (dB) | same split | train time (s) | "
              "points SfM start -> final |", "|---|---:|---:|---:|---|---:|---|"]
@@ -124,8 +127,15 @@ def main(argv=None) -> None:
     parser.add_argument("--no-edits", action="store_true", help="skip the edits")
     parser.add_argument("--finetune", nargs="*", default=["bend", "twist"], metavar="EDIT",
                         help="edits also fine-tuned one epoch (default: bend twist)")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD.PATH=VALUE",
+                        help="change one field of the preset's RunConfig (repeatable); a changed config writes "
+                             "a new table: pass another --results folder")
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
+    try:
+        config_set(get_run_preset(args.preset), *args.set)
+    except ValueError as e:
+        parser.error(f"--set: {e}")
     old = args.results / f"capture_benchmark_{args.preset}.json"
     scenes = json.loads(old.read_text())["scenes"] if old.is_file() else {}
     for name in args.scenes:
@@ -134,11 +144,11 @@ def main(argv=None) -> None:
             scene_dir = args.root / LAYOUTS[layout].format(scene=name)
             print(f"== {name} ({layout}: {scene_dir})", flush=True)
             run_dir = args.runs / f"{name}_{layout}"
-            model, row[layout] = run_layout(args.preset, scene_dir, run_dir, resume=run_dir.is_dir())
+            model, row[layout] = run_layout(args.preset, scene_dir, run_dir, resume=run_dir.is_dir(), sets=args.set)
             print("  " + json.dumps(row[layout]), flush=True)
             if layout == "colmap" and not args.no_edits:
                 row["edits"] = run_edits(model, scene_dir, args.runs / name, args.finetune)
-            text = write_results(args.preset, args.root, scenes, args.results)
+            text = write_results(args.preset, args.root, scenes, args.results, args.set)
     print(text)
 
 
