@@ -20,16 +20,13 @@ import argparse
 import json
 import math
 import multiprocessing as mp
-import os
 import resource
-import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from experiments.common import best_of, entry, machine
-
-HERE = os.path.dirname(os.path.abspath(__file__))
+from experiments.common import RESULTS, best_of, entry, log, machine
 
 
 def surface_cloud(n: int, seed: int = 0) -> np.ndarray:
@@ -71,16 +68,9 @@ def run_size(n: int, quick: bool) -> dict:
     import open3d as o3d
     from scipy.spatial import cKDTree
 
-    from ne_jax.geometry import (
-        Capacities,
-        KDTreeConfig,
-        PointState,
-        build_tree,
-        intersect,
-        intersect_checked,
-        knn_interpolate,
-    )
+    from ne_jax.geometry import Capacities, KDTreeConfig, PointState, build_tree, intersect, intersect_checked
     from ne_jax.geometry.kdtree import KNN_EPS_FACTOR
+    from ne_jax.geometry.knn import knn_interpolate
 
     out = {"n": n}
     xyz = surface_cloud(n)
@@ -139,10 +129,8 @@ def run_size(n: int, quick: bool) -> dict:
     samples_p = np.concatenate([samples, np.repeat(samples[:1], pad, 0)])
     nodes_p = np.concatenate([nodes, np.repeat(nodes[:1], pad, 0)])
     state = PointState.from_numpy(xyz, feature_dim=32, key=jax.random.PRNGKey(0))
-    state = state.replace(
-        conf_logit=jax.random.normal(jax.random.PRNGKey(1), (n,)),
-        normal=jax.random.normal(jax.random.PRNGKey(2), (n, 3)),
-    )
+    state = state.replace(conf_logit=jax.random.normal(jax.random.PRNGKey(1), (n,)),
+                          normal=jax.random.normal(jax.random.PRNGKey(2), (n, 3)))
     f = jax.jit(lambda st, tr, p, nd: knn_interpolate(st, tr, p, nd, cfg))
 
     def run_knn():
@@ -199,20 +187,16 @@ def _worker(args):
 
 
 def table(rows) -> str:
-    head = (
-        "| N | depth | build s | cKDTree s | Open3D s | build / cKDTree | rays/s (intersect) | µs/ray | "
-        "KNN+interp samples/s | scipy samples/s | KNN / scipy | recall | peak RSS MB (ours / all) | tree MB |"
-    )
-    lines = [head, "|" + "---|" * 14]
+    lines = ["| N | depth | build s | cKDTree s | Open3D s | build / cKDTree | rays/s (intersect) | µs/ray | "
+             "KNN+interp samples/s | scipy samples/s | KNN / scipy | recall | peak RSS MB (ours / all) | tree MB |",
+             "|" + "---|" * 14]
     for r in rows:
-        lines.append(
-            f"| {r['n']:.0e} | {r['depth']} | {r['build_s']:.2f} | {r['ckdtree_build_s']:.2f} | "
-            f"{r['open3d_build_s']:.2f} | "
-            f"{r['build_s'] / r['ckdtree_build_s']:.1f}x | {r['intersect_rays_per_s']:.0f} | {r['us_per_ray']:.1f} | "
-            f"{r['knn_samples_per_s']:.0f} | {r['scipy_samples_per_s']:.0f} | "
-            f"{r['knn_samples_per_s'] / r['scipy_samples_per_s']:.2f}x | {r['recall']:.4f} | "
-            f"{r['peak_rss_mb_ours']:.0f} / {r['peak_rss_mb']:.0f} | {r['tree_bytes'] / 2**20:.0f} |"
-        )
+        lines.append(f"| {r['n']:.0e} | {r['depth']} | {r['build_s']:.2f} | {r['ckdtree_build_s']:.2f} | "
+                     f"{r['open3d_build_s']:.2f} | {r['build_s'] / r['ckdtree_build_s']:.1f}x | "
+                     f"{r['intersect_rays_per_s']:.0f} | {r['us_per_ray']:.1f} | {r['knn_samples_per_s']:.0f} | "
+                     f"{r['scipy_samples_per_s']:.0f} | {r['knn_samples_per_s'] / r['scipy_samples_per_s']:.2f}x | "
+                     f"{r['recall']:.4f} | {r['peak_rss_mb_ours']:.0f} / {r['peak_rss_mb']:.0f} | "
+                     f"{r['tree_bytes'] / 2**20:.0f} |")
     return "\n".join(lines)
 
 
@@ -220,9 +204,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (1e4, 3e4) for a smoke test")
     ap.add_argument("--sizes", type=float, nargs="*", help="override the cloud sizes")
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", type=Path, default=RESULTS / "bench_geometry.json")
     args = ap.parse_args(argv)
-    args.out = args.out or os.path.join(HERE, "results", "bench_geometry.json")
     sizes = [int(s) for s in (args.sizes or ([1e4, 3e4] if args.quick else [1e4, 1e5, 1e6, 2e6]))]
     ctx = mp.get_context("spawn")
     rows = []
@@ -232,21 +215,16 @@ def main(argv=None):
             row = pool.map(_worker, [(n, args.quick)])[0]
         row["wall_s"] = time.perf_counter() - t
         rows.append(row)
-        print(f"N={n}: done in {row['wall_s']:.0f} s", file=sys.stderr, flush=True)
+        log(f"N={n}: done in {row['wall_s']:.0f} s")
     md = table(rows)
     print(md)
     import jax
 
-    meta = {
-        "command": "python -m experiments.bench_geometry" + (" --quick" if args.quick else ""),
-        "machine": machine(jax=jax.__version__),
-        "rows": rows,
-        "table_markdown": md,
-    }
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w") as fh:
-        json.dump(meta, fh, indent=2)
-    print(f"wrote {args.out}", file=sys.stderr)
+    meta = {"command": "python -m experiments.bench_geometry" + (" --quick" if args.quick else ""),
+            "machine": machine(jax=jax.__version__), "rows": rows, "table_markdown": md}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(meta, indent=2))
+    log(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

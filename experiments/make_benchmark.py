@@ -8,10 +8,9 @@
                                                               # two unedited scenes, continuing a stopped run
 
 Writes the scenes to ``--out/<preset>/`` (a scene asked for replaces its folder once complete; the
-others there are kept), to ``experiments/results`` each preset's contact sheet
-(``benchmark_contact_sheet_<preset>.png``) and the timings (``make_benchmark.json``), and prints a
-table. ``--resume`` keeps the finished scenes asked for too and continues a stopped one from its last
-image (the same bytes as an uninterrupted run; times summed over sittings).
+others there are kept), each preset's contact sheet (``benchmark_contact_sheet_<preset>.png``) and the
+timings (``make_benchmark.json``) to ``experiments/results``, and prints a table (docs/benchmark.md).
+``--resume`` keeps the finished scenes asked for too and continues a stopped one from its last image.
 """
 
 from __future__ import annotations

@@ -6,12 +6,10 @@
     python -m experiments.train_benchmark --preset default --root DIR --runs RUNS --resume  # continue stopped runs
     python -m experiments.train_benchmark --preset tiny --root BENCH/tiny_pt --runs RUNS  # the path-traced variant
 
-For every scene: generate it (unless ``--root``), train with the preset's :class:`RunConfig` (the
-cloud carved from the visual hull), score the test views (full images on the run's background) and
-the Chamfer distance of the initial and the optimised cloud to the scene's ground-truth surface
-samples, over all samples and with the completeness over only the samples a training camera sees
-(a hidden surface cannot be recovered from images). Writes ``train_benchmark_<preset>.{json,md}`` to
-``experiments/results`` (``<preset>_pt`` on a path-traced ``--root``, whose ``scene.json`` names the
+For every scene: generate it (unless ``--root``), train with the preset's :class:`RunConfig`, score the
+test views and the Chamfer distance of the initial and the optimised cloud to the scene's ground-truth
+surface samples (:func:`run_scene`; docs/studies/training.md). Writes ``train_benchmark_<preset>.{json,md}``
+to ``experiments/results`` (``<preset>_pt`` on a path-traced ``--root``, whose ``scene.json`` names the
 renderer); the run directories go to ``--runs``.
 """
 
@@ -42,6 +40,8 @@ from ne_jax.train.run import get_run_preset
 
 
 def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool = False) -> dict:
+    """Train ``run`` on the scene (from a visual-hull carving) and score it: test PSNR/SSIM on full images,
+    the Chamfer distances of the initial and the final cloud to the surface (all of it, and the seen part)."""
     gt = ground_truth_cloud(scene_dir)
     views = Views.from_split(load_split(scene_dir, "train"))
     init = initial_cloud(run.init, scene_dir, views)
@@ -61,26 +61,25 @@ def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool 
     seen_initial = 0.5 * (before.accuracy_mean + before_seen.completeness_mean)
     seen_final = 0.5 * (after.accuracy_mean + after_seen.completeness_mean)
     rounds = [e["points"] for e in result.history if "points" in e]
-    return {
-        "test_psnr": round(report["psnr"], 2), "test_ssim": round(report["ssim"], 4),
-        "per_view_psnr": [round(v["psnr"], 2) for v in report["views"]],
-        "train_seconds": round(train_seconds, 1), "eval_seconds": round(eval_seconds, 1),
-        "train_cpu_seconds": None if result.recorded_cpu_seconds is None else round(result.recorded_cpu_seconds, 1),
-        "steps": int(result.state.step), "skipped_steps": int(result.state.skipped),
-        "initial_points": len(init), "final_points": len(final),
-        "chamfer_initial": round(before.mean, 5), "chamfer_final": round(after.mean, 5),
-        "chamfer_ratio": round(before.mean / after.mean, 3),
-        "accuracy_initial": round(before.accuracy_mean, 5), "accuracy_final": round(after.accuracy_mean, 5),
-        "seen_share": round(float(seen.mean()), 4),
-        "completeness_seen_initial": round(before_seen.completeness_mean, 5),
-        "completeness_seen_final": round(after_seen.completeness_mean, 5),
-        "chamfer_seen_initial": round(seen_initial, 5), "chamfer_seen_final": round(seen_final, 5),
-        "chamfer_seen_ratio": round(seen_initial / seen_final, 3),
-        "grown": sum(r.get("grown", {}).get("added", 0) for r in rounds),
-        "pruned": sum(r.get("pruned", 0) for r in rounds), "denoised": sum(r.get("denoised", 0) for r in rounds),
-        "lost_segments": report.get("lost_segments"),
-        "train_psnr_by_epoch": [round(e["psnr"], 2) for e in result.history],
-    }
+    cpu_seconds = result.recorded_cpu_seconds
+    return {"test_psnr": round(report["psnr"], 2), "test_ssim": round(report["ssim"], 4),
+            "per_view_psnr": [round(v["psnr"], 2) for v in report["views"]],
+            "train_seconds": round(train_seconds, 1), "eval_seconds": round(eval_seconds, 1),
+            "train_cpu_seconds": None if cpu_seconds is None else round(cpu_seconds, 1),
+            "steps": int(result.state.step), "skipped_steps": int(result.state.skipped),
+            "initial_points": len(init), "final_points": len(final),
+            "chamfer_initial": round(before.mean, 5), "chamfer_final": round(after.mean, 5),
+            "chamfer_ratio": round(before.mean / after.mean, 3),
+            "accuracy_initial": round(before.accuracy_mean, 5), "accuracy_final": round(after.accuracy_mean, 5),
+            "seen_share": round(float(seen.mean()), 4),
+            "completeness_seen_initial": round(before_seen.completeness_mean, 5),
+            "completeness_seen_final": round(after_seen.completeness_mean, 5),
+            "chamfer_seen_initial": round(seen_initial, 5), "chamfer_seen_final": round(seen_final, 5),
+            "chamfer_seen_ratio": round(seen_initial / seen_final, 3),
+            "grown": sum(r.get("grown", {}).get("added", 0) for r in rounds),
+            "pruned": sum(r.get("pruned", 0) for r in rounds), "denoised": sum(r.get("denoised", 0) for r in rounds),
+            "lost_segments": report.get("lost_segments"),
+            "train_psnr_by_epoch": [round(e["psnr"], 2) for e in result.history]}
 
 
 def main(argv=None) -> None:
@@ -170,18 +169,15 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
                 "to the ground-truth surface samples; the seen-surface Chamfer takes the completeness over "
                 "only the samples a training camera sees (seen_share of them; ne_jax.benchmark.generate."
                 "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it "
-                "(initial cloud, epochs with "
-                "their compiles, point-cloud rounds; summed over the sittings of a resumed run), "
-                "train_cpu_seconds the process's CPU time over the same parts (null for a run directory "
-                "recorded without it)",
+                "(initial cloud, epochs with their compiles, point-cloud rounds; summed over the sittings of a "
+                "resumed run), train_cpu_seconds the process's CPU time over the same parts (null for a run "
+                "directory recorded without it)",
         "preset": preset, "benchmark": name,
         "commit": ", ".join(sorted({s.get("commit", "unknown") for s in scenes.values()})),
         "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
-        "batch_size": run.sampler.batch_size, "background": run.background, "set": list(sets),
-        "scenes": scenes,
+        "batch_size": run.sampler.batch_size, "background": run.background, "set": list(sets), "scenes": scenes,
         "machine": common.machine(python=True, jax_devices=jax.device_count(),
-                                  load_average_1_5_15_min=[round(x, 2) for x in os.getloadavg()]),
-    }
+                                  load_average_1_5_15_min=[round(x, 2) for x in os.getloadavg()])}
     changes = "".join(f" --set {s}" for s in sets)
     rerun = f"`python -m experiments.train_benchmark --preset {preset}{changes}`"
     if name.endswith("_heldout"):  # the held-out scenes of a benchmark variant
