@@ -1,27 +1,15 @@
-"""What accuracy costs in time: models *trained* with each setting, and the preset chosen from the front.
+"""What accuracy costs in time: the preset and one-knob changes of it, each trained from scratch and
+scored with its own render config, and the preset chosen from the Pareto fronts
+(docs/studies/accuracy_vs_time.md).
 
     python -m experiments.accuracy_vs_time --scene DIR [--preset tiny] [--runs DIR] [--quick]
         [--candidates full|short] [--train-only I [I ...]] [--finished-only]
     python -m experiments.accuracy_vs_time --summary-only --preset tiny   # the rule applied again, no training
 
-Every candidate is a whole :class:`~ne_jax.train.run.RunConfig`: the preset with one knob changed (K,
-samples per segment ``s``, steps, rays per batch, initial points, the traversal frontier), the joint
-2K with half ``s`` (a candidate set narrower than 2K widened to it), and the preset with another seed,
-whose spread is the training noise a difference must exceed (render settings changed on one trained
-model do not transfer: docs/decisions.md). Each is trained on ``--scene`` (runs cached in ``--runs``
-under :func:`run_key`: a re-run trains only what is missing) and scored on the test split with its own
-render config; ``--finished-only`` scores those whose runs have finished (an interim result). A run's
-test PSNR/SSIM is kept in its folder (:data:`SCORE_FILE`) while the scene, the run's step and the
-library's source are unchanged; the time per image is measured again at every scoring, so its ratios
-come from one process.
-
-Per candidate: test PSNR/SSIM, training time as the loop recorded it, the time per test image (best of
-repeats after a compiling call) and the points; two Pareto fronts (PSNR against training time and
-against time per image) and the preset rule (:func:`choose_preset`). Writes
+Runs are cached in ``--runs`` under :func:`run_key` (a re-run trains only what is missing), test scores
+in each run's :data:`SCORE_FILE`; the time per image is measured again at every scoring. Writes
 ``accuracy_vs_time_training_<preset>_<scene>.{json,png,md}`` to ``--out-dir``, then the summary over
-every scene studied there, ``accuracy_vs_time_training_<preset>.{json,png,md}`` (:func:`combine_scenes`:
-per candidate the mean over scenes of its PSNR change and time ratios against the preset, and the rule
-applied to those means; the knobs are scene-dependent, so a preset is re-chosen from the summary).
+every scene studied there, ``accuracy_vs_time_training_<preset>.{json,png,md}`` (:func:`combine_scenes`).
 """
 
 from __future__ import annotations
@@ -33,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.common import RESULTS, SHARED_NOTE, entry, machine, time_test_render
+from experiments.common import RESULTS, SHARED_NOTE, cached_run, entry, machine, time_test_render
 from experiments.common import log as common_log
 from ne_jax.config_json import config_key
 
@@ -67,14 +55,9 @@ class Candidate:
 
 CANDIDATE_SETS = ("full", "short")
 """``full``: every one-knob change (for ``tiny``: minutes per model); ``short``: the few that matter
-most where a model takes an hour (``default``): K both ways, half the steps, the paper's per-sample
-settings at the same steps and at a quarter of them (about the same time), half the candidate set,
-and a quarter of the traversal frontier (part 2 on the ``default`` model found the frontier, not the
-candidate set, sets the time per image; ``full`` ends with it too), then the two-pass walk of the
-same full width (:attr:`~ne_jax.geometry.capacity.Capacities.first_pass_frontier` at a quarter).
-These two change only the run's :attr:`~ne_jax.train.run.RunConfig.capacities`, which are not part
-of :func:`~ne_jax.config_json.config_key`: their runs are told apart by :func:`run_key`.
-New candidates go at the end, so the indices of ``--train-only`` keep naming the same runs."""
+most where a model takes an hour (``default``). Both end with the frontier and two-pass candidates,
+which change only ``RunConfig.capacities`` (told apart by :func:`run_key`). New candidates go at the
+end, so the indices of ``--train-only`` keep naming the same runs."""
 
 
 def run_key(run) -> str:
@@ -201,12 +184,11 @@ def measure_candidate(c: Candidate, scene_dir: Path, runs: Path, repeats: int, l
     from ne_jax.atomic import atomic_write_json
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.eval.views import evaluate_split
-    from ne_jax.train.loop import train
 
     run = c.run
     run_dir = runs / run_key(run)
     cached = is_finished(run, runs)
-    result = train(run, scene_dir, run_dir, resume=True, progress=False, log=lambda s: None)
+    result = cached_run(run, scene_dir, run_dir)
     split = load_split(scene_dir, "test")
     key = score_key(scene_dir, result.state.step)
     # rendered with the buffer sizes the run starts with, not the ones its training grew to (as in

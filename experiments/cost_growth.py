@@ -1,31 +1,15 @@
-"""How cost grows with the work: the training step, the ray pool, a test render and a point-cloud round.
+"""How cost grows with the work: the training step, the ray pool, a test render and a point-cloud round
+of the ``default`` preset on the benchmark's ``glossy`` scene (its surface samples as the cloud, an
+untrained colour model), each axis (:func:`axes`) varied alone from one reference (:data:`REFERENCE`;
+docs/devices.md).
 
     python -m experiments.cost_growth [--steps 3] [--repeats 3] [--render-repeats 2] [--scene-root DIR] [--quick]
 
-The ``default`` preset's configs on the benchmark's ``glossy`` scene (its surface samples as the
-cloud, an untrained colour model), each axis varied alone from one reference (2,048 rays a batch,
-100,000 points, the tree's depth fitted to them, 17; the pool of a 200 px scene of 100 training views):
-
-* **batch**: a training step at 1,024 to 8,192 rays;
-* **image**: the ray pool of 100 training views at 200, 400 and 800 px (host build time, device bytes,
-  peak memory), a batch drawn from it, and a step on those batches (it should cost the same);
-* **cloud**: a step on 100,000, 300,000 and 1,000,000 points (the depth fitted: 17, 19, 20);
-* **depth**: a step on 100,000 points with the tree fixed at 17 to 21 levels (the ``paper`` preset's 21);
-* **render**: a test view at 200, 400 and 800 px at the preset's 2 x 2 rays per pixel;
-* **round**: the point-cloud round's stages (growth scan of 8,192 rays, prune, denoise, normals) and
-  the tree rebuild at 100,000, 300,000 and 1,000,000 points.
-
-All on one device; each axis measures its own reference row (a shared machine's load drifts). A step
-is compiled ahead of time (XLA's memory analysis of the program) and timed as ``--steps`` steps after
-an uncounted one, best of ``--repeats`` blocks; a render best of ``--render-repeats`` after a compiling
-one; a round's stages run twice, the second timed. Memory: the process's peak resident memory while
-measuring (``VmHWM``, reset through ``/proc/self/clear_refs``) less what it held before (``VmRSS``),
-and a GPU's ``peak_bytes_in_use`` (not reset). Each row has its ratio to its axis's reference row, the
-ratio of the work (rays, pixels, points, levels) and their quotient: above 1, the cost grows faster.
-
-Scenes as :mod:`experiments.gpu_check` makes them (its 200 and 800 px ones and a 400 px one) in
-``--scene-root``. Writes ``cost_growth.{json,md}`` (``cost_growth_<device>`` on an accelerator,
-``cost_growth_quick`` with ``--quick``, a smoke test at toy sizes) to ``--out-dir``.
+Each axis measures its own reference row (a shared machine's load drifts); each row has the ratio of
+its cost to that row's, the ratio of the work (:func:`work`) and their quotient: above 1, the cost
+grows faster. Scenes as :mod:`experiments.gpu_check` makes them, in ``--scene-root``. Writes
+``cost_growth.{json,md}`` (``cost_growth_<device>`` on an accelerator, ``cost_growth_quick`` with
+``--quick``, a smoke test at toy sizes) to ``--out-dir``.
 """
 
 from __future__ import annotations
@@ -58,6 +42,8 @@ class Axes:
 
 
 def axes(quick: bool) -> Axes:
+    """Rays a batch; image sizes (the pool, a batch from it, a step on it, a test render); cloud sizes (a
+    step, the tree's depth fitted, and a round); the tree's depth at the reference cloud."""
     from ne_jax.benchmark.generate import BenchmarkPreset
 
     if quick:
@@ -94,8 +80,10 @@ def _status(field: str) -> int | None:
 
 
 class Peak:
-    """The process's peak resident memory over a ``with`` block, less what it held at the start:
-    ``.delta_mib`` (and ``.peak_mib``); ``None`` where Linux's counters cannot be read or reset."""
+    """The process's peak resident memory over a ``with`` block (``VmHWM``, reset through
+    ``/proc/self/clear_refs``), less what it held at the start (``VmRSS``): ``.delta_mib`` (and
+    ``.peak_mib``); ``None`` where Linux's counters cannot be read or reset. ``.device_peak_mib``: a
+    GPU's ``peak_bytes_in_use`` so far (not reset)."""
 
     def __enter__(self):
         try:
@@ -144,9 +132,9 @@ def program_memory(compiled) -> dict:
 
 def step_cost(run, points, pool, steps: int, repeats: int, compiled: dict | None = None) -> dict:
     """``run``'s training step on ``points`` with batches from ``pool``: ms per step (best of
-    ``repeats`` blocks of ``steps``), the compile, the tree's depth and build time, memory.
-    ``compiled``: the caller's programs by configs and shapes, reused and added to (a row whose
-    step another row compiled compiles nothing)."""
+    ``repeats`` blocks of ``steps`` after an uncounted one), the ahead-of-time compile and its program's
+    memory, the tree's depth and build time, the process's memory. ``compiled``: the caller's programs
+    by configs and shapes, reused and added to (a row whose step another row compiled compiles nothing)."""
     import jax
 
     from ne_jax.render.renderer import PointScene

@@ -1,29 +1,16 @@
-"""The GPU check in one command: what a lent accelerator does with the ``default`` and ``paper`` presets.
+"""The GPU check in one command: what a lent accelerator does with the ``default`` and ``paper`` presets
+(docs/devices.md).
 
     python -m experiments.gpu_check [--budget-s 420] [--scene-root DIR] [--out-dir DIR] [--tiny]
     python -m experiments.gpu_check --generate-only --scene-root DIR   # the scenes alone (needs Open3D)
 
-Within ``--budget-s`` seconds (start-up and scene generation aside), in this order:
-
-1. **devices**: what JAX sees (kind, platform, memory limit), jax and jaxlib versions;
-2. **rates**: rays per second of the ``default`` and ``paper`` training steps (``common.time_steps``)
-   and of a test render (``common.time_test_render``, test view 0), each on its scene's ground-truth
-   surface samples (the preset's cloud size) with an untrained colour model: the timings depend on
-   the cloud and the tree, not on what the model has learned;
-3. **a whole ``default`` run** on a 200 px scene (carving, 12 epochs, 7 rounds, checkpoints), scored
-   on the scene's test views;
-4. **the ``paper`` preset on an 800 px scene** (100 training views) shortened to four epochs with a
-   round after the second, each epoch's steps sized from the paper step's rate to end within what is
-   left of the budget; it trains epoch by epoch, each call resuming from the last checkpoint, stops
-   early when the next epoch would not fit, and is scored on a few test views. The full run is
-   projected from it: 80,000 steps at the step time of its epochs that compiled nothing, 9 rounds at
-   its round's time, 200 test views at its time per view after the first (the first compiles).
-
-Peak memory is read after each part (a GPU's ``peak_bytes_in_use``; the process's peak resident
-memory). The scenes (the benchmark's ``glossy``, ray-cast with Open3D into ``--scene-root``) can be
-generated elsewhere and carried (docs/devices.md); the models declare the scene's effects as ``ne-jax
-train`` does. ``--tiny``: every part at a toy size, a smoke test on a CPU. Writes
-``gpu_check[_tiny]_<device>.{json,md}`` to ``--out-dir`` (``<device>``: ``common.device_tag``).
+Within ``--budget-s`` seconds (start-up and scene generation aside), in this order: the devices; the
+rates of each preset's training step and test render (:func:`rates`); a whole ``default`` run on a
+200 px scene (:func:`default_run`); the ``paper`` preset on an 800 px scene for what is left of the
+budget, and the full run projected from it (:func:`paper_run`). The scenes are the benchmark's
+``glossy``, ray-cast with Open3D into ``--scene-root`` (or generated elsewhere and carried). ``--tiny``:
+every part at a toy size, a smoke test on a CPU. Writes ``gpu_check[_tiny]_<device>.{json,md}`` to
+``--out-dir`` (``<device>``: ``common.device_tag``).
 """
 
 from __future__ import annotations
@@ -248,8 +235,11 @@ def next_epoch_fits(spent_s: float, calls: list[dict], budget_s: float, views: i
 
 def paper_run(run, scene: Path, run_dir: Path, s_per_step: float, budget_s: float, views: int, s_per_view: float,
               tiny: bool, log=print) -> dict:
-    """The ``paper`` preset on ``scene`` within ``budget_s`` seconds (module docstring, part 4) and
-    the full run's projected time."""
+    """The ``paper`` preset on ``scene``, shortened to :data:`PAPER_EPOCHS` epochs (a round after the
+    second) of steps sized from ``s_per_step`` to end within ``budget_s`` seconds, trained epoch by epoch
+    (each call resuming) until the next epoch would not fit, then scored on ``views`` test views; and the
+    full run projected from it: :data:`PAPER_STEPS` steps at the step time of its epochs that compiled
+    nothing, :data:`PAPER_ROUNDS` rounds at its round's time, :data:`TEST_VIEWS` views at its time per view."""
     from ne_jax.config_json import config_key
     from ne_jax.data.nerf_synthetic import load_split
     from ne_jax.train.loop import train

@@ -2,12 +2,10 @@
 
     python -m experiments.paper_800px [--budget-s 3000] [--views 3] [--scene-root DIR] [--runs DIR]
 
-The benchmark's ``glossy`` scene ray-cast at 800 x 800 with 100 training and 200 test views (a NeRF
-Synthetic scene's layout), the ``paper`` preset shortened as :func:`experiments.gpu_check.paper_run`
-does (four epochs, a round after the second, each epoch a resumed call, sized from ``--s-per-step`` to
-end within ``--budget-s``), ``--views`` test views scored and timed, the full run (80,000 steps, 9
-rounds, 200 test views) projected, the process's peak resident memory recorded. Writes
-``paper_800px[_<device>].{json,md}`` to ``--out-dir``.
+The benchmark's ``glossy`` scene ray-cast at 800 x 800 in a NeRF Synthetic scene's layout (100 training,
+200 test views); the ``paper`` preset shortened, ``--views`` test views scored and the full run projected
+as :func:`experiments.gpu_check.paper_run` does (sized from ``--s-per-step`` to end within ``--budget-s``),
+and the process's peak memory (docs/devices.md). Writes ``paper_800px[_<device>].{json,md}`` to ``--out-dir``.
 """
 
 from __future__ import annotations

@@ -1,21 +1,12 @@
-"""A profile of the ``default`` preset's hot path, by stage, against the machine's matmul FLOP/s.
+"""A profile of the ``default`` preset's hot path, by stage, against the machine's matmul FLOP/s
+(docs/studies/profile.md: the scene, the batches and the method).
 
     python -m experiments.profile_hot_path [--reference-path /tmp/ne/prof_ref] [--repeats 5] [--rounds 2] [--quick]
 
-The scene, the batches and the method are docs/studies/profile.md's: 100,000 glossy surface samples
-with random features and the ``default`` render config; one 4,096-ray render chunk from a 200 px orbit
-camera and a 2,048-ray training batch (90% hits). Every stage (traversal, packing and sampling, KNN
-weights, integration, MLPs, compositing; the whole render, its VJP, the whole training step, the
-host's tree rebuild per round) is jitted alone on the previous stage's outputs and timed (best of
-``--repeats`` after a compiling call), with XLA's ``cost_analysis`` FLOPs set against a 2048 x 2048
-float32 ``jnp.dot`` of the same run.
-
-Old vs new: the whole render and training step are also timed in subprocesses with the code at
-``--reference-path`` (a worktree of the reference commit) and this checkout, alternating, each started
-as it starts itself (this checkout with huge pages, :mod:`ne_jax._host_memory`; the reference
-without). That path runs this module, from a folder that holds only a link to this checkout's
-:mod:`experiments`, against the reference's ``ne_jax``, which must have the API :func:`whole_calls`
-calls. Writes
+Every stage is jitted alone on the previous stage's outputs and timed, with XLA's FLOPs
+(:func:`profile_stages`). The whole render and training step are also timed in fresh processes with
+the ``ne_jax`` of ``--reference-path`` (a worktree of the reference commit, which must have the API
+:func:`whole_calls` calls) and of this checkout, alternating (:func:`_child`). Writes
 ``experiments/results/profile_hot_path.{json,md}``.
 """
 
@@ -24,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -40,14 +30,12 @@ POINTS = 100_000
 
 
 def _commit(path: Path) -> str:
-    try:
-        head = subprocess.run(["git", "-C", str(path), "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(path), "status", "--porcelain", "--", "ne_jax"],
-                               capture_output=True, text=True).stdout.strip()
-        return head + ("+dirty" if dirty else "")
-    except Exception:  # noqa: BLE001
-        return "unknown"
+    """The short ``HEAD`` commit of the checkout at ``path``, ``+dirty`` where its ``ne_jax`` is modified."""
+    from ne_jax.provenance import git
+
+    head = git("-C", str(path), "rev-parse", "--short", "HEAD")
+    dirty = head != "unknown" and git("-C", str(path), "status", "--porcelain", "--", "ne_jax")
+    return head + ("+dirty" if dirty else "")
 
 
 def flops_of(jitted, *args) -> float | None:
@@ -64,8 +52,10 @@ def flops_of(jitted, *args) -> float | None:
 
 
 def build_inputs(quick: bool, run=None):
-    """The ``default`` scene, a render batch and a training batch (see the module docstring);
-    ``run``: a :class:`~ne_jax.train.run.RunConfig` in place of the ``default`` preset."""
+    """The scene (:data:`POINTS` glossy surface samples, random features), a :data:`RENDER_RAYS`-ray
+    render chunk through the middle of an :data:`IMAGE` px orbit view and a :data:`TRAIN_RAYS`-ray
+    training batch (90% hits): ``(run, scene, render_rays, train_rays, build_s, hit_share)``; ``run``:
+    a :class:`~ne_jax.train.run.RunConfig` in place of the ``default`` preset."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -165,14 +155,17 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
     peak = 2 * 2048**3 / t_mm
     rows = []
 
-    def add(name, kind, rays, fn, *args, flops=None):
-        j = jax.jit(fn)
-        t = best_time(lambda: j(*args), repeats)[1]
-        f = flops_of(j, *args) if flops is None else flops
+    def row(name, kind, rays, t, f=None, **extra):  # a stage's time and, where known, its FLOPs
         rows.append({"stage": name, "batch": kind, "rays": rays, "ms": 1e3 * t,
                      "gflop": None if f is None else f / 1e9,
                      "gflop_per_s": None if f is None else f / t / 1e9,
-                     "vs_matmul": None if f is None else f / t / peak})
+                     "vs_matmul": None if f is None else f / t / peak, **extra})
+
+    def add(name, kind, rays, fn, *args):
+        j = jax.jit(fn)
+        t = best_time(lambda: j(*args), repeats)[1]
+        f = flops_of(j, *args)
+        row(name, kind, rays, t, f)
         print(f"{kind:6s} {name:36s} {1e3 * t:9.2f} ms  {'' if f is None else f'{f / t / 1e9:8.2f} GFLOP/s'}",
               flush=True)
         return j(*args)
@@ -183,7 +176,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
         cap = sc.capacities
         tc = cfg.kdtree
         tree = sc.tree
-        params = init_train_state(run.train, cfg, sc.points, jax.random.key(1)).params
+        state = init_train_state(run.train, cfg, sc.points, jax.random.key(1))
         aux = kind == "train"
         r = rays.num_rays
         seg = add("traversal", kind, r, lambda tr, ry: intersect(tr, ry, tc, cap), tree, rays)
@@ -215,7 +208,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
         means = add("value gather and integration", kind, r, integ, pc, ci, needed)
         means = {k: v.reshape((v.shape[0],) + needed[k].shape[1:]) for k, v in means.items()}
         sh = add("MLPs (shade)", kind, r, lambda p, f, nrm, dd: shade(cfg.shading, p, f, nrm, dd),
-                 params, means["feature"], means.get("normal"), d)
+                 state.params, means["feature"], means.get("normal"), d)
 
         def comp(sigma, rgb, seg, slot, live):
             def unpack(v):
@@ -228,9 +221,9 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
 
         add("compositing", kind, r, comp, sh.sigma, sh.rgb, seg, slot, live)
         if kind == "render":
-            add("whole render", kind, r, lambda p, sc_, ry: render_rays(cfg, p, sc_, ry, bg).rgb, params, sc, rays)
+            add("whole render", kind, r, lambda p, sc_, ry: render_rays(cfg, p, sc_, ry, bg).rgb, state.params, sc,
+                rays)
             return
-        state = init_train_state(run.train, cfg, sc.points, jax.random.key(1))
         add("whole forward (render with aux)", kind, r,
             lambda p, sc_, ry: render_rays_with_aux(cfg, p, sc_, ry, bg), state.params, sc, rays)
 
@@ -245,17 +238,15 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
         step = make_train_step(run.train, cfg)
         batch = Batch(rays=rays, pixel=jnp.zeros(r, jnp.int32), in_band=jnp.zeros(r, bool), background=bg)
         t = best_time(lambda: step(state, sc, batch)[1]["loss/total"], repeats)[1]
-        rows.append({"stage": "whole training step", "batch": kind, "rays": r, "ms": 1e3 * t, "gflop": None,
-                     "gflop_per_s": None, "vs_matmul": None})
+        row("whole training step", kind, r, t)
         print(f"train  whole training step {1e3 * t:9.2f} ms", flush=True)
         # host side: a tree rebuild after each point round (run.round_epochs), amortised over an epoch
         t0 = time.perf_counter()
         build_tree(np.asarray(pts.xyz), np.asarray(pts.alive), tc)
         t_build = time.perf_counter() - t0
         rounds = run.round_epochs[1] - run.round_epochs[0] + 1  # after epochs first .. last, inclusive
-        rows.append({"stage": "host: tree rebuild (per round)", "batch": kind, "rays": r, "ms": 1e3 * t_build,
-                     "gflop": None, "gflop_per_s": None, "vs_matmul": None,
-                     "amortised_ms_per_step": 1e3 * t_build * rounds / (run.epochs * run.steps_per_epoch)})
+        row("host: tree rebuild (per round)", kind, r, t_build,
+            amortised_ms_per_step=1e3 * t_build * rounds / (run.epochs * run.steps_per_epoch))
     one("render", rrays)
     one("train", trays)
     return {"matmul_gflop_per_s": peak / 1e9, "matmul_ms": 1e3 * t_mm, "tree_build_s": build_s,
@@ -326,15 +317,12 @@ def main(argv=None) -> None:
     best = {k: {**v[0], "render_rays_per_s": max(x["render_rays_per_s"] for x in v),
                 "step_rays_per_s": max(x["step_rays_per_s"] for x in v)} for k, v in whole.items()}
     prof = profile_stages(args.repeats, args.quick)
-    report = {
-        "command": "python -m experiments.profile_hot_path" + (" --quick" if args.quick else ""),
-        "commit": _commit(ROOT), "reference_commit": _commit(Path(args.reference_path)), "config": CONFIG,
-        "device": str(jax.devices()[0]), "jax": jax.__version__,
-        "machine": machine(),
-        "profile": prof, "whole": best, "whole_rounds": whole,
-        "ratio": {"render": best["new"]["render_rays_per_s"] / best["reference"]["render_rays_per_s"],
-                  "step": best["new"]["step_rays_per_s"] / best["reference"]["step_rays_per_s"]},
-    }
+    report = {"command": "python -m experiments.profile_hot_path" + (" --quick" if args.quick else ""),
+              "commit": _commit(ROOT), "reference_commit": _commit(Path(args.reference_path)), "config": CONFIG,
+              "device": str(jax.devices()[0]), "jax": jax.__version__, "machine": machine(),
+              "profile": prof, "whole": best, "whole_rounds": whole,
+              "ratio": {"render": best["new"]["render_rays_per_s"] / best["reference"]["render_rays_per_s"],
+                        "step": best["new"]["step_rays_per_s"] / best["reference"]["step_rays_per_s"]}}
     write_results(args.out_dir, "profile_hot_path" + ("_quick" if args.quick else ""), report, to_markdown(report))
 
 
