@@ -62,8 +62,7 @@ def _model_setup(run_dir: Path, views: int):
     split = load_split(model.scene_dir, "test")
     cameras = split.cameras()[:views]
     pts = model.state.point_state(model.scene.points)
-    alive = np.asarray(pts.alive)
-    xyz = np.asarray(pts.xyz)[alive]
+    xyz = np.asarray(pts.xyz)[np.asarray(pts.alive)]
     pivot = tuple(float(v) for v in 0.5 * (xyz.min(axis=0) + xyz.max(axis=0)))
     return model, cameras, pts, pivot
 

@@ -284,8 +284,7 @@ def to_markdown(report: dict) -> str:
     for r in prof["rows"]:
         whole = next((x["ms"] for x in prof["rows"] if x["batch"] == r["batch"]
                       and x["stage"] in ("whole render", "whole training step")), None)
-        share = "" if whole is None or r["stage"].startswith("whole") or r["stage"].startswith("host") \
-            else f"{100 * r['ms'] / whole:.0f}%"
+        share = "" if whole is None or r["stage"].startswith(("whole", "host")) else f"{100 * r['ms'] / whole:.0f}%"
         lines.append(f"| {r['batch']} ({r['rays']} rays) | {r['stage']} | {r['ms']:.1f} | {share} | "
                      f"{_fmt(r['gflop'], '.3f')} | {_fmt(r['gflop_per_s'], '.2f')} | "
                      f"{_pct(r['vs_matmul'])} |")
