@@ -50,8 +50,6 @@ class EditConfig:
     """How the IST is computed."""
     normals: NormalConfig = NormalConfig(orient="none")
     """Normal estimation on the edited cloud (orientation comes from the IST, not from cameras)."""
-    compute_ist: bool = True
-    """Off: the IST is left as it was (the "without IST" variant renders with the effect off anyway)."""
     reestimate_normals: bool = True
     """Off: every point keeps its original normal, unrotated (an analysis switch: what the normals
     re-estimated on the edited cloud contribute; the IST is still computed from them)."""
@@ -159,9 +157,6 @@ def edited_points(cfg: EditConfig, plan: EditPlan, points: PointState, xyz: jax.
     """The edited state for new positions ``xyz [C, 3]`` under a fixed ``plan`` (pure JAX,
     differentiable in ``xyz``): ``(points, counts)``. Dead slots keep their old positions."""
     xyz = jnp.where(plan.alive[:, None], jnp.asarray(xyz, points.xyz.dtype), points.xyz)
-    if not cfg.compute_ist:
-        normal = plan.normal if cfg.reestimate_normals else jnp.where(plan.alive[:, None], points.normal, 0.0)
-        return points.replace(xyz=xyz, alive=plan.alive, normal=normal), {}
     ist, sign, counts = ist_from_plan(cfg.ist, plan.ist, points.xyz, points.normal, xyz, plan.normal)
     composed = jnp.einsum("cij,cjk->cik", points.ist, ist)
     oriented = sign[:, None] * plan.normal if cfg.reestimate_normals else points.normal
