@@ -26,10 +26,12 @@ def entry(main, huge_pages: bool = True) -> None:
     """A module's ``if __name__ == "__main__"`` block: the process set up as ``ne-jax`` sets it up
     (``ne_jax.setup``: a host device per usable core and, with ``huge_pages``, huge pages for XLA's
     scratch memory, starting the process again with them), then ``main()``, whose return value is
-    the exit status. The module's imports, before it, start no JAX."""
+    the exit status. The module's imports, before it, start no JAX. (An older ``ne_jax`` without
+    ``setup``, run by :func:`json_from`, set its process up at import.)"""
     import ne_jax
 
-    ne_jax.setup(huge_pages=huge_pages)
+    if hasattr(ne_jax, "setup"):
+        ne_jax.setup(huge_pages=huge_pages)
     sys.exit(main())
 
 

@@ -56,8 +56,9 @@ def initial_model(mini, tmp_path_factory):
 
 
 def test_compare_runs_same_and_different(initial_model, tmp_path, capsys):
-    """``python -m experiments.compare_runs``: a run against a copy of itself is equal bit for bit (exit 0); a
-    copy whose checkpoint holds other parameters is not (exit 1). (What the runs trained does not matter:
+    """``python -m experiments.compare_runs``: a run against a copy of itself, also read by a checkout in
+    another process, is equal bit for bit, its test render too (exit 0); a copy whose checkpoint holds
+    other parameters is not (exit 1). (What the runs trained does not matter:
     the run directory holds a model as training starts it.)"""
     import importlib
     import shutil
@@ -65,6 +66,11 @@ def test_compare_runs_same_and_different(initial_model, tmp_path, capsys):
     compare = importlib.import_module("experiments.compare_runs")
     run_dir = initial_model
     assert compare.main([str(run_dir), str(run_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "every array equal bit for bit: True" in out and "render.rgb: 0" in out
+    from experiments.common import ROOT
+
+    assert compare.main([str(run_dir), str(run_dir), "--checkout-b", str(ROOT)]) == 0  # read in a fresh process
     assert "every array equal bit for bit: True" in capsys.readouterr().out
     import jax
 
