@@ -1,11 +1,8 @@
-"""How fast the viewer (``ne-jax view``) answers, on this machine (docs/viewer.md): frames per second of
-a ``tiny`` model at 128 x 128 and at the 32 x 32 preview over an orbit of cameras, and an edit of its
-cloud resampled to 100,000 points with the viewer's steps timed one by one (select a box region, move
-it, the edited model, its render). With ``--reference-path REF`` (older code: ``git worktree add REF
-COMMIT``) each version is measured ``--rounds`` times in fresh processes, alternating, and the tables
-set the best of each side by side. Writes ``experiments/results/bench_view.{json,md}``. ``--screenshot
-PNG`` instead takes the docs' picture of the viewer in headless Chromium (selenium; the ``view`` and
-``test`` extras, Debian's ``chromium`` and ``chromium-driver``)::
+"""How fast the viewer (``ne-jax view``) answers (docs/viewer.md): frames per second of a ``tiny`` model
+and an edit of its cloud resampled to 100,000 points, step by step; with ``--reference-path REF`` (``git
+worktree add REF COMMIT``) against older code. Writes ``experiments/results/bench_view.{json,md}``.
+``--screenshot PNG`` takes the docs' picture of the viewer in headless Chromium (selenium; the ``view``
+and ``test`` extras, Debian's ``chromium`` and ``chromium-driver``)::
 
     python -m experiments.bench_view --run RUN          # RUN: a tiny model (`ne-jax train ... --preset tiny`)
     python -m experiments.bench_view --run RUN --reference-path REF

@@ -1,7 +1,5 @@
 """What declaring a scene's effects buys: each benchmark scene trained with the effects its
-``scene.json`` declares and with every effect on, in one run: training time, time per test image
-(wall and this process's CPU time), parameters, test PSNR and SSIM; with ``--each-effect`` also each
-left-out effect switched on alone, where a scene leaves out several.
+``scene.json`` declares and with every effect on (docs/studies/effects.md).
 
     python -m experiments.effects_study --root BENCH/tiny --preset tiny --runs RUNS --out effects_study_tiny
 

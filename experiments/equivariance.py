@@ -1,11 +1,6 @@
 """Equivariance of edits: a trained model moved rigidly must render as the original seen from moved
-cameras (:mod:`ne_jax.edit.fidelity`; docs/editing.md). Two tables per model:
-
-* **motions** (:func:`motions`): rotations, a translation and a uniform scaling, each edited with the
-  tree carried (``EditConfig()``, the default) and rebuilt (``rebuild_tree=True``, the paper): PSNR
-  between the edited render from moved test cameras and the unedited render;
-* **diagnosis** (``--diagnose``, :func:`diagnose`): one rotation with one stage of the edit path held
-  exact, or switched, at a time.
+cameras (:mod:`ne_jax.edit.fidelity`; docs/editing.md): per model each of :func:`motions` with the tree
+carried and rebuilt, and with ``--diagnose`` one rotation a stage at a time (:func:`diagnose`).
 
     python -m experiments.equivariance --runs RUN [RUN ...] [--views 4] [--diagnose] [--out NAME]
     python -m experiments.equivariance --summarize experiments/results/equivariance_*tiny*.json --out NAME
