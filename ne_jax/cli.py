@@ -90,7 +90,7 @@ def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True,
     from ne_jax.data.nerf_synthetic import composite
     from ne_jax.data.scene import check_recorded_split, load_split
     from ne_jax.eval import evaluate_model, save_images
-    from ne_jax.eval.regions import error_map_picture, split_regions
+    from ne_jax.eval.regions import error_map_picture, split_regions, view_shares
 
     split = load_split(scene_dir, split_name, model.run.downscale)
     if model.run_dir is not None and model.scene_dir is not None and \
@@ -112,6 +112,8 @@ def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True,
         report["subset"] = {"views": split.num_views, "of": whole, "seconds_per_view": round(per_view, 2),
                             "projected_split_seconds": round(per_view * whole, 1)}
     report["regions"], labels = split_regions(split, images, model.background, depths=depths)
+    for view, share in zip(report["views"], view_shares(labels, "hole")):
+        view["hole_pixels"] = round(float(share), 6)
     truth = composite(split.images, report["background"])
     names = [f"{i:03d}_{Path(p).name}.png" for i, p in zip(chosen, split.file_paths)]
     save_images(images, out / "images", names)
@@ -134,6 +136,9 @@ def _print_eval(report: dict, out: Path) -> None:
         print("  error by region: " + ", ".join(f"{k} {100 * v['error']:.0f}% ({100 * v['pixels']:.0f}% of pixels)"
                                                  for k, v in parts if v["error"] >= 0.005)
               + f"; pictures in {out / 'error_maps'}")
+        worst = max(report["views"], key=lambda v: v.get("hole_pixels", 0.0))
+        if worst.get("hole_pixels"):
+            print(f"  holes: {100 * worst['hole_pixels']:.2f}% of the pixels of {worst['view']}, the most of any view")
 
 
 def _declared(run, scene_dir: Path, spec: str):

@@ -133,6 +133,14 @@ def region_errors(labels: np.ndarray, pred: np.ndarray, target: np.ndarray) -> d
     return out
 
 
+def view_shares(labels: np.ndarray, region: str) -> np.ndarray:
+    """``[N]``: the share of each view's pixels labelled ``region`` (``labels [N, H, W]``)."""
+    if region not in REGIONS:
+        raise ValueError(f"region: expected one of {REGIONS}, found {region!r}")
+    labels = np.asarray(labels)
+    return (labels == REGIONS.index(region)).reshape(len(labels), -1).mean(-1)
+
+
 def split_regions(split, images: np.ndarray, background, cfg: RegionConfig = RegionConfig(),
                   depths: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
     """:func:`region_errors` of renders ``images [N, H, W, 3]`` (with their depth maps ``depths``
@@ -162,4 +170,4 @@ def error_map_picture(target: np.ndarray, pred: np.ndarray, labels: np.ndarray, 
 
 
 __all__ = ["COLORS", "REGIONS", "RegionConfig", "error_map_picture", "label_regions", "neighbour_depth",
-           "region_errors", "split_regions"]
+           "region_errors", "split_regions", "view_shares"]

@@ -144,6 +144,7 @@ def test_cli_edit_and_finetune(trained, tmp_path, capsys):
     report = json.loads((tmp_path / "f" / "eval_test" / "metrics.json").read_text())
     assert set(report["regions"]) == {"silhouette", "hole", "see_through", "highlight", "texture", "flat", "background"}
     assert sum(r["error"] for r in report["regions"].values()) == pytest.approx(1.0)
+    assert all(0.0 <= v["hole_pixels"] <= 1.0 for v in report["views"])
     assert len(list((tmp_path / "f" / "eval_test" / "error_maps").glob("*.png"))) == report["num_views"]
     # fine-tuning without trainable ISTs (the default): features trained, ISTs untouched
     history = json.loads((tmp_path / "f" / "metrics.json").read_text())["epochs"]

@@ -4,7 +4,7 @@ shares, the picture and bad input."""
 import numpy as np
 import pytest
 
-from ne_jax.eval.regions import REGIONS, error_map_picture, label_regions, region_errors
+from ne_jax.eval.regions import REGIONS, error_map_picture, label_regions, region_errors, view_shares
 
 BG = np.ones(3, np.float32)
 
@@ -88,3 +88,14 @@ def test_a_pixel_behind_its_neighbours_is_see_through():
     assert region_errors(labels, pred, target)["see_through"]["error"] == pytest.approx(1.0)
     with pytest.raises(ValueError, match=r"depth: expected shape \[48, 48\], found \[48, 47\]"):
         label_regions(target, alpha, pred, BG, depth=depth[:, :47])
+
+
+def test_view_shares_count_each_views_pixels():
+    """``view_shares``: per view the share of its pixels in one region (the hole goal of a test view);
+    an unknown region is named."""
+    labels = np.full((3, 4, 5), REGIONS.index("flat"))
+    labels[1, 0, :2] = REGIONS.index("hole")  # 2 of 20 pixels
+    labels[2] = REGIONS.index("hole")
+    np.testing.assert_allclose(view_shares(labels, "hole"), [0.0, 0.1, 1.0])
+    with pytest.raises(ValueError, match="'holes'"):
+        view_shares(labels, "holes")
