@@ -93,12 +93,7 @@ def run_size(n: int, quick: bool) -> dict:
     out["tree_bytes"] = int(sum(a.nbytes for a in jax.tree_util.tree_leaves(tree)))
     out["ckdtree_build_s"] = best_of(lambda: cKDTree(xyz), 3 if n <= 10**6 else 2)
     pts_o3d = o3d.core.Tensor(xyz)
-
-    def o3d_build():
-        nns = o3d.core.nns.NearestNeighborSearch(pts_o3d)
-        nns.knn_index()
-
-    out["open3d_build_s"] = best_of(o3d_build, 2)
+    out["open3d_build_s"] = best_of(lambda: o3d.core.nns.NearestNeighborSearch(pts_o3d).knn_index(), 2)
 
     # --- traversal -----------------------------------------------------------------------------
     res = 64 if quick else 128
@@ -181,11 +176,6 @@ def run_size(n: int, quick: bool) -> dict:
     return out
 
 
-def _worker(args):
-    n, quick = args
-    return run_size(n, quick)
-
-
 def table(rows) -> str:
     lines = ["| N | depth | build s | cKDTree s | Open3D s | build / cKDTree | rays/s (intersect) | µs/ray | "
              "KNN+interp samples/s | scipy samples/s | KNN / scipy | recall | peak RSS MB (ours / all) | tree MB |",
@@ -212,7 +202,7 @@ def main(argv=None):
     for n in sizes:
         t = time.perf_counter()
         with ctx.Pool(1) as pool:
-            row = pool.map(_worker, [(n, args.quick)])[0]
+            row = pool.apply(run_size, (n, args.quick))
         row["wall_s"] = time.perf_counter() - t
         rows.append(row)
         log(f"N={n}: done in {row['wall_s']:.0f} s")

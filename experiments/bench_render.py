@@ -3,11 +3,8 @@
     python -m experiments.bench_render            # all presets and effects (several minutes on CPU)
     python -m experiments.bench_render --quick    # small cloud, tiny + default only
 
-A random model on the ``glossy`` scene's surface samples (``common.bench_cloud``: the effects cost
-the same whatever the weights), 100 x 100 images from the test orbit; per setting the compile, the
-best of ``--repeats`` ms per image (wall, and this process's CPU time, which moves less beside other
-jobs) and rays per second. Merged into ``experiments/results/bench_render.json`` under the backend's
-name (``cpu``, ``gpu``).
+A random model (``common.bench_cloud``), 100 x 100 images (docs/studies/rendering.md); merged into
+``experiments/results/bench_render.json`` under the backend's name (``cpu``, ``gpu``).
 """
 
 from __future__ import annotations
@@ -76,17 +73,16 @@ def main(argv=None) -> None:
                      "build_s": round(build, 2), **r})
         print(rows[-1], flush=True)
         if preset == "default":
-            base = cfg
             unpacked = scene.replace(capacities=scene.capacities.replace(segments_per_ray=None))
             variants = {  # (render config, scene)
-                "specular off (diffuse only)": (base.with_effects(specular=False), scene),
-                "IST on": (base.with_effects(ist=True), scene),
-                "background sphere on": (base.with_effects(background_model="sphere"), scene),
-                "predicted normals (no point normals)": (base.with_effects(point_normals=False), scene),
-                "traditional colour head": (base.with_effects(specular=False, color_head="traditional"), scene),
+                "specular off (diffuse only)": (cfg.with_effects(specular=False), scene),
+                "IST on": (cfg.with_effects(ist=True), scene),
+                "background sphere on": (cfg.with_effects(background_model="sphere"), scene),
+                "predicted normals (no point normals)": (cfg.with_effects(point_normals=False), scene),
+                "traditional colour head": (cfg.with_effects(specular=False, color_head="traditional"), scene),
                 # Unpacked, every one of the M slots per ray is sampled and shaded: at the default
                 # 4096-ray chunk that needs ~31 GB, so this row uses 512-ray chunks.
-                "no segment packing (512-ray chunks)": (base.replace(chunk=512), unpacked),
+                "no segment packing (512-ray chunks)": (cfg.replace(chunk=512), unpacked),
             }
             for name, (vcfg, vscene) in variants.items():
                 rows.append({"setting": f"default, {name}", "points": n, "depth": scene.tree.depth,

@@ -5,10 +5,8 @@ would on their own captures (no masks, a start from SfM points, a learned backgr
     python -m experiments.capture_benchmark --preset tiny --root BENCH/tiny_capture --runs RUNS
     python -m experiments.capture_benchmark --preset tiny --root BENCH/tiny_capture --runs RUNS --layouts colmap
 
-For every scene and layout (``colmap``: the scene folder; ``nerfstudio``: its ``<scene>_ns`` copy):
-trained as ``ne-jax train`` trains a capture, the held-out images (every 8th) scored on the full image,
-and on the COLMAP copy each benchmark edit zero-shot (``--finetune`` edits also fine-tuned one epoch;
-docs/benchmark.md). Writes ``experiments/results/capture_benchmark_<preset>.{json,md}``.
+Every scene in each layout (``colmap``: the scene folder; ``nerfstudio``: its ``<scene>_ns`` copy), as
+docs/benchmark.md describes. Writes ``experiments/results/capture_benchmark_<preset>.{json,md}``.
 """
 
 from __future__ import annotations
@@ -23,7 +21,7 @@ import numpy as np
 from experiments import common
 from experiments.common import RESULTS, commit, entry
 from ne_jax.benchmark.edits import benchmark_edit
-from ne_jax.benchmark.scenes import SCENES
+from ne_jax.benchmark.scenes import SCENES, get_scene
 from ne_jax.config_json import config_key, config_set
 from ne_jax.data.scene import load_split, scene_points
 from ne_jax.edit.model import edit_model, finetune, model_edit_context
@@ -62,8 +60,6 @@ def run_layout(preset: str, scene_dir: Path, run_dir: Path, resume: bool, sets=(
 
 
 def run_edits(model, scene_dir: Path, runs: Path, finetune_edits: list[str]) -> dict:
-    from ne_jax.benchmark.scenes import get_scene
-
     meta = json.loads((scene_dir / "scene.json").read_text())
     out = {}
     context = model_edit_context(model)  # shared by every edit of the model

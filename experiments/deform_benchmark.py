@@ -8,12 +8,9 @@ zero-shot and after fine-tuning, PSNR and SSIM on the edited scene's test views.
     python -m experiments.deform_benchmark --preset tiny --runs runs/deform1 --set render.pixel_samples=1  # a field
     python -m experiments.deform_benchmark --by-kind experiments/results/deform_benchmark_tiny.json  # by kind
 
-Each scene's models are trained with the preset's :class:`~ne_jax.train.run.RunConfig` (``--set
-FIELD.PATH=VALUE`` changes a field, recorded) and cached in ``--runs``; each edit is made zero-shot
-(:func:`~ne_jax.edit.model.edit_model`) and fine-tuned ``--finetune-epochs`` epochs (docs/editing.md).
-Writes ``experiments/results/deform_benchmark_<preset>[_pt].{json,md,png}`` after every (scene, edit);
-every record is cached in ``<runs>/<scene>/records/<config key>/<edit>/`` (a re-run measures only what
-is missing). ``--by-kind RESULTS.json`` writes ``<stem>_by_kind.md`` beside a results file (:data:`KINDS`).
+The models are cached in ``--runs`` (docs/editing.md), every record in ``<runs>/<scene>/records/<config
+key>/<edit>/`` (a re-run measures only what is missing); ``experiments/results/deform_benchmark_<preset>[_pt]``
+is written after every (scene, edit). ``--by-kind`` writes ``<stem>_by_kind.md`` beside a results file.
 """
 
 from __future__ import annotations
@@ -219,19 +216,12 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
         + ("" if benchmark == args.preset else f" --root BENCH/{benchmark}") + " --runs DIR"}
     columns = list(dict.fromkeys((r["scene"], r["edit"]) for r in records))
     on = "" if benchmark == args.preset else f" on the `{benchmark}` benchmark"
-    lines = [f"Deformation benchmark, preset `{args.preset}`{on} ({full.epochs} x {full.steps_per_epoch} "
-             f"training steps; "
-             f"fine-tuning {report['finetune_epochs']} epoch(s) x {report['finetune_steps_per_epoch']} steps), "
+    lines = [f"Deformation benchmark, preset `{args.preset}`{on} ({full.epochs} x {full.steps_per_epoch} training "
+             f"steps; fine-tuning {report['finetune_epochs']} epoch(s) x {report['finetune_steps_per_epoch']} steps), "
              f"commit {report['commit']}, config key {report['config_key']}. PSNR (dB) on the edited scenes' test "
              f"views per edit, and the means of PSNR, SSIM and LPIPS (AlexNet; lower is better); background "
-             f"{full.background}. The last row is the "
-             f"unedited model on its own test views (the reference a faithful edit can reach). "
-             f"Re-run: `{report['command']}`.", ""]
-
-    def mean_of(rows, key):
-        vals = [r[key] for r in rows if r.get(key) is not None]
-        return f"{np.mean(vals):.{2 if key == 'psnr' else 3}f}" if vals else ""
-
+             f"{full.background}. The last row is the unedited model on its own test views (the reference a "
+             f"faithful edit can reach). Re-run: `{report['command']}`.", ""]
     for phase, title in (("zero_shot", "Zero-shot"), ("finetune", "Fine-tuned")):
         if not any(phase in r for r in records):
             continue
@@ -242,16 +232,19 @@ def write_results(out_name: str, args, full, records: list, variants, seconds: f
             if not got:
                 continue
             cells = ["" if c not in got else f"{got[c]['psnr']:.2f}" for c in columns]
-            rows = list(got.values())
-            lines.append(f"| {v.label} | " + " | ".join(cells)
-                         + f" | {mean_of(rows, 'psnr')} | {mean_of(rows, 'ssim')} | {mean_of(rows, 'lpips')} |")
+            lines.append(f"| {v.label} | " + " | ".join(cells) + f" | {_means(got.values())} |")
         own = [unedited[s] for s, _ in columns if s in unedited]
         if own:
             cells = [f"{unedited[s]['psnr']:.2f}" if s in unedited else "" for s, _ in columns]
-            lines.append("| unedited model, own test views | " + " | ".join(cells)
-                         + f" | {mean_of(own, 'psnr')} | {mean_of(own, 'ssim')} | {mean_of(own, 'lpips')} |")
+            lines.append("| unedited model, own test views | " + " | ".join(cells) + f" | {_means(own)} |")
         lines.append("")
     common.write_results(RESULTS, out_name, report, "\n".join(lines), echo=False)
+
+
+def _means(rows) -> str:
+    """The mean PSNR, SSIM and LPIPS cells of a table row, each over the ``rows`` that have it."""
+    vals = {k: [r[k] for r in rows if r.get(k) is not None] for k in ("psnr", "ssim", "lpips")}
+    return " | ".join(f"{np.mean(v):.{2 if k == 'psnr' else 3}f}" if v else "" for k, v in vals.items())
 
 
 def write_figure(out_name: str, figure: dict, variants) -> None:
@@ -293,8 +286,7 @@ def by_kind(records: list[dict], stage: str = "zero_shot") -> str:
     the mean over every edit, and the mean SSIM and LPIPS."""
     variants = list(dict.fromkeys(r["variant"] for r in records))
     kinds = [k for k in KINDS if any(kind_of(r["edit"]) == k for r in records)]
-    lines = ["| variant | " + " | ".join(kinds) + " | mean | SSIM | LPIPS |",
-             "|---|" + "---:|" * (len(kinds) + 3)]
+    lines = ["| variant | " + " | ".join(kinds) + " | mean | SSIM | LPIPS |", "|---|" + "---:|" * (len(kinds) + 3)]
     for v in variants:
         rows = [r[stage] for r in records if r["variant"] == v and stage in r]
         if not rows:
@@ -303,10 +295,7 @@ def by_kind(records: list[dict], stage: str = "zero_shot") -> str:
         for k in kinds:
             vals = [r[stage]["psnr"] for r in records if r["variant"] == v and kind_of(r["edit"]) == k and stage in r]
             cells.append(f"{np.mean(vals):.2f}" if vals else "")
-        lp = [x["lpips"] for x in rows if x.get("lpips") is not None]
-        cells += [f"{np.mean([x['psnr'] for x in rows]):.2f}", f"{np.mean([x['ssim'] for x in rows]):.3f}",
-                  f"{np.mean(lp):.3f}" if lp else ""]
-        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+        lines.append(f"| {v} | " + " | ".join(cells) + f" | {_means(rows)} |")
     return "\n".join(lines)
 
 

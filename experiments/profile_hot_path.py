@@ -173,9 +173,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
     def one(kind, rays):  # the stages of one batch ("render" or "train")
         cfg = run.train_render if kind == "train" else run.render
         sc = scene.fitted(cfg, trays) if kind == "train" else scene  # the packing budget, as training fits it
-        cap = sc.capacities
-        tc = cfg.kdtree
-        tree = sc.tree
+        cap, tc, tree = sc.capacities, cfg.kdtree, sc.tree
         state = init_train_state(run.train, cfg, sc.points, jax.random.key(1))
         aux = kind == "train"
         r = rays.num_rays
@@ -264,10 +262,6 @@ def _child(path: str | None, repeats: int, quick: bool) -> dict:
     return common.json_from("profile_hot_path", args, path or ROOT, env if path else tunables_env(env) or env)
 
 
-def _pct(v):
-    return "" if v is None else f"{100 * v:.1f}%"
-
-
 def _fmt(v, spec):
     return "" if v is None else format(v, spec)
 
@@ -286,8 +280,7 @@ def to_markdown(report: dict) -> str:
                       and x["stage"] in ("whole render", "whole training step")), None)
         share = "" if whole is None or r["stage"].startswith(("whole", "host")) else f"{100 * r['ms'] / whole:.0f}%"
         lines.append(f"| {r['batch']} ({r['rays']} rays) | {r['stage']} | {r['ms']:.1f} | {share} | "
-                     f"{_fmt(r['gflop'], '.3f')} | {_fmt(r['gflop_per_s'], '.2f')} | "
-                     f"{_pct(r['vs_matmul'])} |")
+                     f"{_fmt(r['gflop'], '.3f')} | {_fmt(r['gflop_per_s'], '.2f')} | {_fmt(r['vs_matmul'], '.1%')} |")
     lines += ["", "| code | render rays/s | train step rays/s | step loss |", "|---|---:|---:|---:|"]
     for name in ("reference", "new"):
         w = report["whole"][name]
