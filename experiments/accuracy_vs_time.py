@@ -292,8 +292,7 @@ def plot(res: dict, path: Path, axes_keys=(("train_s", "training wall time (s)")
 
     rows, ch = res["rows"], res["choice"]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
-    fronts = (ch["train_front"], ch["render_front"])
-    for ax, (key, xlabel), front in zip(axes, axes_keys, fronts):
+    for ax, (key, xlabel), front in zip(axes, axes_keys, (ch["train_front"], ch["render_front"])):
         for knob in dict.fromkeys(r["knob"] for r in rows):
             sel = [r for r in rows if r["knob"] == knob]
             ax.scatter([r[key] for r in sel], [r["psnr"] for r in sel], s=26, label=knob, alpha=0.85)
@@ -365,9 +364,8 @@ def combine_scenes(out_dir: Path, preset: str, key: str | None = None) -> dict |
         found = ", ".join(f"{Path(st['scene']).name}: {_preset_key(st)}" for st in studies)
         raise ValueError(f"{out_dir}: the `{preset}` studies there are of {len(keys)} different preset configs "
                          f"({found}); re-run the older scenes or move them to another --out-dir")
-    labels = [r["label"] for r in studies[0]["rows"]]
     by_scene = [{r["label"]: r for r in s["rows"]} for s in studies]
-    labels = [lab for lab in labels if all(lab in b for b in by_scene)]
+    labels = [r["label"] for r in studies[0]["rows"] if all(r["label"] in b for b in by_scene)]
     rows = []
     for lab in labels:
         per = [(b[lab]["psnr"] - s["rows"][0]["psnr"], b[lab]["train_s"] / s["rows"][0]["train_s"],
@@ -480,10 +478,8 @@ def run_training(scene_dir: Path, runs: Path, out_dir: Path, command: str, prese
     res = {"study": "training", "command": command, "preset": preset, "preset_key": run_key(run),
            "scene": str(scene_dir), "quick": quick,
            "split": f"{split.name} ({split.num_views} views, {split.width}x{split.height})",
-           "machine": machine(note=SHARED_NOTE),
-           "jax": jax.__version__, "rows": rows, "unfinished": unfinished,
-           "wall_s": round(time.perf_counter() - t0, 1)}
-    res["choice"] = choose_preset(rows)
+           "machine": machine(note=SHARED_NOTE), "jax": jax.__version__, "rows": rows, "unfinished": unfinished,
+           "wall_s": round(time.perf_counter() - t0, 1), "choice": choose_preset(rows)}
     _write(Path(out_dir), _stem(preset, scene_dir.name), res, summary_markdown(res))
     others = [Path(r["scene"]).name for r in scene_results(out_dir, preset) if _preset_key(r) != res["preset_key"]]
     if others:

@@ -40,7 +40,7 @@ def _tiny_run(work: Path) -> Path:
     return run
 
 
-def _orbit(model, n: int, size: int):
+def _orbit(model, n: int):
     """``n`` OpenCV ``(wxyz, position)`` cameras on a circle around the cloud, looking at its centre,
     at the middle of the model's depth range (the benchmark's cameras: the object fills the view)."""
     try:
@@ -67,7 +67,7 @@ def _orbit(model, n: int, size: int):
 def _fps(model, size: int, frames: int) -> dict:
     from ne_jax.view.frames import camera_from_viewer, render_frame
 
-    cams = [camera_from_viewer(w, p, np.deg2rad(40), size, size) for w, p in _orbit(model, frames, size)]
+    cams = [camera_from_viewer(w, p, np.deg2rad(40), size, size) for w, p in _orbit(model, frames)]
     _, first = render_frame(model, cams[0])  # compiles
     times = [render_frame(model, c)[1] for c in cams]
     return {"size": size, "frames": frames, "first_frame_s": round(first, 3),
@@ -110,7 +110,7 @@ def _edit_100k(model, n: int, size: int) -> dict:
     from ne_jax.view.frames import camera_from_viewer, render_frame
 
     big, build_s = _resampled(model, n)
-    (wxyz, pos), = _orbit(big, 1, size)
+    (wxyz, pos), = _orbit(big, 1)
     cam = camera_from_viewer(wxyz, pos, np.deg2rad(40), size, size)
     _, first = render_frame(big, cam)
     _, unedited = render_frame(big, cam)
@@ -321,8 +321,7 @@ def main(argv=None) -> int | None:
              f"1-minute load average {load:.1f} at the start, {load_after:.1f} at the end: above 0 other jobs "
              f"shared the cores). Model `{model.run.name}` (config key {report['model']['config_key']}, "
              f"{report['model']['points']} points). Commit {report['commit'][:12]}"
-             f"{' (work tree modified)' if modified else ''}{against}; re-run: `{command}`.", "",
-             *_table(new, ref)]
+             f"{' (work tree modified)' if modified else ''}{against}; re-run: `{command}`.", "", *_table(new, ref)]
     write_results(RESULTS, "bench_view", report, "\n".join(lines))
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from experiments import common
 from experiments.common import SCENE, best_time, timed_steps
-from experiments.gpu_check import SCENE_ROOT, peak_memory, scene_dir, sizes, toy
+from experiments.gpu_check import SCENE_ROOT, peak_memory, presets, scene_dir, sizes
 
 REFERENCE = {"batch": 2048, "image": 200, "cloud": 100_000, "depth": 17, "render": 200, "round": 100_000}
 
@@ -54,14 +54,6 @@ def axes(quick: bool) -> Axes:
     mid = BenchmarkPreset("cost_growth_400", 400, 100, 1, 1, 1, 1.0, 100_000)
     return Axes(batch=(1024, 2048, 4096, 8192), images=(full.small, mid, full.large),
                 clouds=(100_000, 300_000, 1_000_000), depths=(17, 18, 19, 20, 21), grow_rays=8192, quick=False)
-
-
-def base_run(quick: bool):
-    """The ``default`` preset (:func:`~experiments.gpu_check.toy` with ``quick``)."""
-    from ne_jax.train.run import RunConfig
-
-    run = RunConfig.default()
-    return toy(run, 1_500) if quick else run
 
 
 # ---------------------------------------------------------------- memory
@@ -242,7 +234,7 @@ def study(a: Axes, scene_root: Path, steps: int, repeats: int, render_repeats: i
     from ne_jax.train.state import init_train_state
 
     t_start = time.perf_counter()
-    run = base_run(a.quick)
+    run = presets(sizes(a.quick))["default"]  # the preset, or a toy one with --quick
     scenes = [scene_dir(p, scene_root, log) for p in a.images]
     ref_points = a.clouds[0]
     pts = {n: common.bench_cloud(n, run.render.shading.feature_dim, INIT_CAPACITY_HEADROOM) for n in a.clouds}
@@ -373,8 +365,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if min(args.steps, args.repeats, args.render_repeats) < 1:
         raise SystemExit("--steps, --repeats, --render-repeats: expected at least 1 each")
-    res = study(axes(args.quick), args.scene_root, args.steps, args.repeats, args.render_repeats,
-                log=common.log)
+    res = study(axes(args.quick), args.scene_root, args.steps, args.repeats, args.render_repeats, log=common.log)
     res.update(command=common.command("cost_growth", argv), commit=common.commit())
     tag = common.device_tag()
     stem = "cost_growth_quick" if args.quick else ("cost_growth" if tag == "cpu" else f"cost_growth_{tag}")

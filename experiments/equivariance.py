@@ -54,8 +54,7 @@ def motions(pivot) -> list[tuple[str, Edit, str]]:
 
 def _model_setup(run_dir: Path, views: int):
     model = load_trained(run_dir)
-    split = load_split(model.scene_dir, "test")
-    cameras = split.cameras()[:views]
+    cameras = load_split(model.scene_dir, "test").cameras()[:views]
     pts = model.state.point_state(model.scene.points)
     xyz = np.asarray(pts.xyz)[np.asarray(pts.alive)]
     pivot = tuple(float(v) for v in 0.5 * (xyz.min(axis=0) + xyz.max(axis=0)))

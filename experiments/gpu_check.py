@@ -297,21 +297,17 @@ def check(s: Sizes, scene_root: Path, run_root: Path, budget_s: float, log=print
     runs = {"default": declared(runs["default"], small), "paper": declared(runs["paper"], large)}
     res["rates"] = {}
     for name, scene in (("default", small), ("paper", large)):
-        r = rates(runs[name], scene, s.rate_steps, s.repeats)
-        res["rates"][name] = r
+        r = res["rates"][name] = rates(runs[name], scene, s.rate_steps, s.repeats)
         save(res)
         log_t(f"{name}: step {r['ms_per_step']:.1f} ms ({r['train_rays_per_s']} rays/s), {r['image_px']} px image "
               f"{r['ms_per_image']:.0f} ms ({r['render_rays_per_s']} rays/s)")
-    res["default_run"] = default_run(runs["default"], small, run_root / "default", 4 if not s.tiny else 1,
-                                     log=log_t)
-    d = res["default_run"]
+    d = res["default_run"] = default_run(runs["default"], small, run_root / "default", 1 if s.tiny else 4, log=log_t)
     save(res)
     log_t(f"default run: {d['steps']} steps in {d['wall_s']:.0f} s, test PSNR {d['test']['psnr']:.2f} dB")
     paper_rate = res["rates"]["paper"]
     left = budget_s - (time.perf_counter() - t0)
-    res["paper_run"] = paper_run(runs["paper"], large, run_root / "paper", paper_rate["ms_per_step"] / 1e3, left,
-                                 s.score_views, paper_rate["ms_per_image"] / 1e3, s.tiny, log=log_t)
-    p = res["paper_run"]
+    p = res["paper_run"] = paper_run(runs["paper"], large, run_root / "paper", paper_rate["ms_per_step"] / 1e3, left,
+                                     s.score_views, paper_rate["ms_per_image"] / 1e3, s.tiny, log=log_t)
     log_t(f"paper run: {sum(e['steps'] for e in p['epochs'])} steps, {p['s_per_step'] * 1e3:.1f} ms/step, test PSNR "
           f"{p['test']['psnr']:.2f} dB on {p['test']['views']} views ({p['test']['s_per_view']:.1f} s/view); "
           f"full run ~{p['projected']['total_h']:.2f} h")

@@ -17,7 +17,7 @@ def toy(tmp_path_factory):
     a = C.axes(quick=True)
     root = tmp_path_factory.mktemp("cost_growth_scenes")
     scenes = [G.scene_dir(p, root, log=lambda m: None) for p in a.images]
-    return a, scenes, C.base_run(quick=True)
+    return a, scenes, G.presets(G.sizes(True))["default"]
 
 
 def test_a_step_and_the_pool_it_draws_from(toy):
