@@ -71,6 +71,24 @@ def matrix_to_euler_deg(rot) -> np.ndarray:
     return np.rad2deg(np.array([ax, ay, az]))
 
 
+def offsets_to_model(frame, translation, angles_deg) -> tuple[np.ndarray, np.ndarray]:
+    """The viewer's move fields, in the capture's coordinates (``translation`` ``[3]`` in its units,
+    ``angles_deg`` ``[3]`` about its axes as :func:`euler_deg_to_matrix` reads them), as the model
+    frame's translation ``[3]`` and rotation ``[3, 3]``; ``frame``: the model's
+    :class:`~ne_jax.data.scene.Normalisation` (identity for a NeRF Synthetic scene)."""
+    rn = np.asarray(frame.rotation, np.float64)
+    return (frame.scale * rn @ np.asarray(translation, np.float64).reshape(3),
+            rn @ euler_deg_to_matrix(angles_deg) @ rn.T)
+
+
+def offsets_to_capture(frame, translation, rotation) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of :func:`offsets_to_model`: the model frame's ``translation`` ``[3]`` and
+    ``rotation`` ``[3, 3]`` as the capture's translation ``[3]`` and angles ``[3]`` (degrees)."""
+    rn = np.asarray(frame.rotation, np.float64)
+    return (rn.T @ np.asarray(translation, np.float64).reshape(3) / frame.scale,
+            matrix_to_euler_deg(rn.T @ np.asarray(rotation, np.float64) @ rn))
+
+
 def matrix_to_quat(rot) -> np.ndarray:
     """``[4]`` quaternion ``(w, x, y, z)`` (``w >= 0``) of a rotation matrix ``[3, 3]``."""
     r = np.asarray(rot, np.float64)
@@ -336,5 +354,6 @@ def save_view_edit(model, edit: ViewEdit, out_dir: str | os.PathLike, *, ist: bo
 
 
 __all__ = ["EDIT_PLY", "Region", "SelectionError", "Transform", "ViewEdit", "delete_points", "euler_deg_to_matrix",
-           "matrix_to_euler_deg", "matrix_to_quat", "move_points", "quat_to_matrix", "save_view_edit",
-           "select_region", "select_screen_rect", "selection_center", "write_edit_ply"]
+           "matrix_to_euler_deg", "matrix_to_quat", "move_points", "offsets_to_capture", "offsets_to_model",
+           "quat_to_matrix", "save_view_edit", "select_region", "select_screen_rect", "selection_center",
+           "write_edit_ply"]

@@ -401,16 +401,20 @@ class Viewer:
         self._region_ctl.visible = vis
 
     def _transform(self) -> E.Transform:
-        return E.Transform.from_euler(self._move_pivot, self._gui_move.value, self._gui_rotate.value,
-                                      float(self._gui_scale.value))
+        """The move fields (capture coordinates) as a transform in the model's frame."""
+        t, rot = E.offsets_to_model(self.model.frame, self._gui_move.value, self._gui_rotate.value)
+        return E.Transform(tuple(tuple(map(float, r)) for r in rot), tuple(map(float, t)),
+                           float(self._gui_scale.value), tuple(map(float, self._move_pivot)))
 
     def _on_move_gizmo(self, handle) -> None:
         if self._gizmo_guard:
             return
         self._gizmo_guard = True
         try:
-            self._gui_move.value = tuple(np.round(np.asarray(handle.position) - self._move_pivot, 5))
-            self._gui_rotate.value = tuple(np.round(E.matrix_to_euler_deg(E.quat_to_matrix(handle.wxyz)), 3))
+            t, angles = E.offsets_to_capture(self.model.frame, np.asarray(handle.position) - self._move_pivot,
+                                             E.quat_to_matrix(handle.wxyz))
+            self._gui_move.value = tuple(np.round(t, 5))
+            self._gui_rotate.value = tuple(np.round(angles, 3))
         finally:
             self._gizmo_guard = False
         self._show_selection(self._transform())

@@ -141,3 +141,23 @@ def test_ply_is_what_ne_jax_edit_reads(points, tmp_path):
     d = np.linalg.norm(np.asarray(points.xyz, np.float64), axis=1)
     away = np.abs(d - 0.3) > 1e-6
     np.testing.assert_array_equal(by_fn.deleted[away], by_region.deleted[away])
+
+
+def test_move_fields_in_capture_coordinates():
+    """A move typed in a capture's coordinates (``offsets_to_model``) moves the model-frame points as the
+    same move moves the capture's points: frame(move_capture(x)) == move_model(frame(x)); and
+    ``offsets_to_capture`` inverts it (the gizmo's motion shown in the fields)."""
+    from ne_jax.data.scene import Normalisation
+
+    rn = E.euler_deg_to_matrix((10.0, -30.0, 75.0))
+    frame = Normalisation(scale=0.37, rotation=tuple(map(tuple, rn)), translation=(0.2, -1.0, 0.5))
+    rng = np.random.default_rng(0)
+    x_cap, pivot_cap = rng.normal(size=(20, 3)), rng.normal(size=3)
+    t_cap, angles = np.array([0.3, -0.1, 2.0]), np.array([20.0, 5.0, -40.0])
+    moved_cap = E.Transform.from_euler(pivot_cap, t_cap, angles, 1.5).apply(x_cap)
+    t, rot = E.offsets_to_model(frame, t_cap, angles)
+    in_model = E.Transform(tuple(map(tuple, rot)), tuple(t), 1.5, tuple(frame.to_scene(pivot_cap[None])[0]))
+    np.testing.assert_allclose(in_model.apply(frame.to_scene(x_cap)), frame.to_scene(moved_cap), atol=1e-12)
+    back_t, back_angles = E.offsets_to_capture(frame, t, rot)
+    np.testing.assert_allclose(back_t, t_cap, atol=1e-12)
+    np.testing.assert_allclose(back_angles, angles, atol=1e-9)
