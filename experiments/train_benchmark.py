@@ -32,6 +32,7 @@ from ne_jax.benchmark.scenes import SCENE_SETS, SCENES, scene_names
 from ne_jax.config_json import config_key, config_set
 from ne_jax.data.nerf_synthetic import load_split
 from ne_jax.eval import evaluate_model, save_images
+from ne_jax.eval.regions import split_regions, view_shares
 from ne_jax.pointcloud.init import Views, ground_truth_cloud
 from ne_jax.pointcloud.metrics import chamfer
 from ne_jax.provenance import commit
@@ -51,6 +52,7 @@ def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool 
     t0 = time.perf_counter()
     report, images = evaluate_model(result, split, progress=progress)
     eval_seconds = time.perf_counter() - t0
+    holes = view_shares(split_regions(split, images, result.background)[1], "hole")
     save_images(images, run_dir / "eval_test" / "images", [f"{i:03d}.png" for i in range(len(images))])
     final = np.asarray(result.scene.points.xyz)[np.asarray(result.scene.points.alive)]
     seen = seen_surface_samples(scene_dir)  # the samples some training camera sees
@@ -64,6 +66,7 @@ def run_scene(scene_dir: Path, run, run_dir: Path, progress: bool, resume: bool 
     cpu_seconds = result.recorded_cpu_seconds
     return {"test_psnr": round(report["psnr"], 2), "test_ssim": round(report["ssim"], 4),
             "per_view_psnr": [round(v["psnr"], 2) for v in report["views"]],
+            "hole_pixels_worst_view": round(float(holes.max()), 6),
             "train_seconds": round(train_seconds, 1), "eval_seconds": round(eval_seconds, 1),
             "train_cpu_seconds": None if cpu_seconds is None else round(cpu_seconds, 1),
             "steps": int(result.state.step), "skipped_steps": int(result.state.skipped),
@@ -171,7 +174,8 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
                 "seen_surface_samples) and the accuracy over all; train_seconds as the loop recorded it "
                 "(initial cloud, epochs with their compiles, point-cloud rounds; summed over the sittings of a "
                 "resumed run), train_cpu_seconds the process's CPU time over the same parts (null for a run "
-                "directory recorded without it)",
+                "directory recorded without it); hole_pixels_worst_view: the largest share of a test view's pixels "
+                "labelled hole (object in the ground truth rendered as background; ne_jax.eval.regions)",
         "preset": preset, "benchmark": name,
         "commit": ", ".join(sorted({s.get("commit", "unknown") for s in scenes.values()})),
         "config_key": config_key(run), "epochs": run.epochs, "steps_per_epoch": run.steps_per_epoch,
@@ -192,15 +196,16 @@ def write_results(preset: str, run, scenes: dict, results: Path = RESULTS, name:
     lines = [f"Preset `{preset}`: {run.epochs} epochs x {run.steps_per_epoch} steps of {run.sampler.batch_size} "
              f"rays; commit {report['commit']}, config key {report['config_key']}; {rerun}.", "",
              "| scene | test PSNR (dB) | test SSIM | train time (s) | points initial -> final | "
-             "Chamfer initial -> final | ratio | seen-surface Chamfer initial -> final | ratio |",
-             "|---|---:|---:|---:|---|---|---:|---|---:|"]
+             "Chamfer initial -> final | ratio | seen-surface Chamfer initial -> final | ratio | holes, worst view |",
+             "|---|---:|---:|---:|---|---|---:|---|---:|---:|"]
     for scene, s in scenes.items():
         seen = (f"{s['chamfer_seen_initial']:.4f} -> {s['chamfer_seen_final']:.4f} "
                 f"({100 * s['seen_share']:.0f}% seen) | {s['chamfer_seen_ratio']:.2f}"
                 if "chamfer_seen_ratio" in s else "not measured | -")
+        holes = f"{100 * s['hole_pixels_worst_view']:.2f}%" if "hole_pixels_worst_view" in s else "-"
         lines.append(f"| {scene} | {s['test_psnr']:.2f} | {s['test_ssim']:.3f} | {s['train_seconds']:.0f} | "
                      f"{s['initial_points']} -> {s['final_points']} | {s['chamfer_initial']:.4f} -> "
-                     f"{s['chamfer_final']:.4f} | {s['chamfer_ratio']:.2f} | {seen} |")
+                     f"{s['chamfer_final']:.4f} | {s['chamfer_ratio']:.2f} | {seen} | {holes} |")
     text = "\n".join(lines) + "\n"
     common.write_results(results, f"train_benchmark_{name}", report, text, echo=False)
     return text

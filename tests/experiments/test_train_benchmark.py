@@ -39,7 +39,7 @@ def test_scenes_take_set_names_and_do_not_mix_the_sets(capsys):
 
 def test_a_short_run_writes_the_table(tmp_path):
     """Two steps on a small scene (a small carving, set with ``--set``): the JSON and the table hold both
-    Chamfer measures."""
+    Chamfer measures and the worst test view's share of hole pixels."""
     import json
 
     from ne_jax.benchmark.generate import generate_scene
@@ -59,6 +59,7 @@ def test_a_short_run_writes_the_table(tmp_path):
         assert s[f"chamfer_seen_{when}"] == pytest.approx(expected, abs=2e-5)
     table = (tmp_path / "out" / "train_benchmark_tiny.md").read_text()
     assert "| glossy |" in table and "% seen)" in table
+    assert 0.0 <= s["hole_pixels_worst_view"] <= 1.0 and f"{100 * s['hole_pixels_worst_view']:.2f}% |" in table
 
 
 def test_scenes_accumulate_only_within_one_config(tmp_path):
