@@ -124,6 +124,10 @@ class Normalisation:
         xyz = np.asarray(xyz, np.float64)
         return (xyz - np.asarray(self.translation)) @ np.asarray(self.rotation) / self.scale
 
+    def rotate_to_scene(self, vectors: np.ndarray) -> np.ndarray:
+        """Capture-frame directions (normals) ``[..., 3]`` -> the scene frame (unit length kept)."""
+        return np.asarray(vectors, np.float64) @ np.asarray(self.rotation).T
+
     def rotate_to_capture(self, vectors: np.ndarray) -> np.ndarray:
         """Scene-frame directions (normals) ``[..., 3]`` -> the capture's frame (unit length kept)."""
         return np.asarray(vectors, np.float64) @ np.asarray(self.rotation)

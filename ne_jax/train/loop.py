@@ -33,7 +33,15 @@ from ne_jax.atomic import atomic_write_text
 from ne_jax.compiles import count_compiles
 from ne_jax.config_json import config_diff, config_to_json
 from ne_jax.data.nerf_synthetic import SceneSplit
-from ne_jax.data.scene import Normalisation, detect_format, load_split, scene_near_far, scene_points, scene_record
+from ne_jax.data.scene import (
+    Normalisation,
+    detect_format,
+    load_split,
+    scene_near_far,
+    scene_normalisation,
+    scene_points,
+    scene_record,
+)
 from ne_jax.geometry.capacity import LostCounts
 from ne_jax.geometry.points import PointState
 from ne_jax.pointcloud.init import (
@@ -88,10 +96,9 @@ def initial_cloud(cfg: InitConfig, scene_dir: Path, views: Views) -> InitialClou
                 f"{scene_dir}: init.source='auto' found neither structure-from-motion points (COLMAP points3D, "
                 "nerfstudio ply_file_path) nor alpha masks in the training images to start a cloud from; run "
                 "`ne-jax process-images PHOTOS --out SCENE` to make a COLMAP scene, or pass --init ply --ply FILE")
-    if source == "ply":
-        cloud = load_ply_cloud(cfg.ply_path)
-    elif source == "ground_truth":
-        cloud = ground_truth_cloud(scene_dir)
+    if source in ("ply", "ground_truth"):  # a PLY is in the capture's coordinates, as the user sees them
+        cloud = load_ply_cloud(cfg.ply_path) if source == "ply" else ground_truth_cloud(scene_dir)
+        cloud = _to_scene_frame(cloud, scene_normalisation(scene_dir))
     elif source == "sfm":
         if found is None:
             raise CarvingError(f"{scene_dir}: init.source='sfm' but the scene folder has no structure-from-motion "
@@ -106,6 +113,14 @@ def initial_cloud(cfg: InitConfig, scene_dir: Path, views: Views) -> InitialClou
             carve = dataclasses.replace(carve, min_views=views.num_views)
         cloud = carve_visual_hull(carve, views)
     return dataclasses.replace(cloud, info={**cloud.info, "why": why})
+
+
+def _to_scene_frame(cloud: InitialCloud, norm: Normalisation) -> InitialCloud:
+    """``cloud`` (capture coordinates) in the scene frame of ``norm``; unchanged for the identity."""
+    if norm.is_identity:
+        return cloud
+    normals = None if cloud.normals is None else norm.rotate_to_scene(cloud.normals).astype(np.float32)
+    return dataclasses.replace(cloud, xyz=norm.to_scene(cloud.xyz).astype(np.float32), normals=normals)
 
 
 def fit_to_scene(run: RunConfig, scene_dir: Path) -> RunConfig:

@@ -131,3 +131,33 @@ def test_sfm_cloud_needs_points_to_start_from():
         sfm_cloud(np.array([[0.0, 0.0, 50.0]] * 3), _sphere_views(), 100)
     with pytest.raises(ValueError, match=r"expected SfM points \[P, 3\]"):
         sfm_cloud(np.zeros((4, 2)), _sphere_views(), 100)
+
+
+@pytest.mark.parametrize("source", ["ply", "ground_truth"])
+def test_a_start_from_a_ply_is_read_in_the_captures_coordinates(tmp_path, source):
+    """A PLY the user gives (and the benchmark's ``points.ply`` of a capture) holds capture
+    coordinates: the run's initial cloud is it brought into the scene frame, normals turned."""
+    import formats_fixtures as fx
+
+    from ne_jax.data.ply import write_ply
+    from ne_jax.data.scene import scene_normalisation
+    from ne_jax.train.loop import initial_cloud
+    from ne_jax.train.run import InitConfig
+
+    c2w = fx.circle_c2w(12, radius=8.0, height=3.0)
+    c2w[:, :3, 3] += (5.0, -3.0, 2.0)  # the circle about (5, -3, 2), so the frames differ
+    fx.write_colmap_text(tmp_path, c2w, [f"img_{i:02d}.png" for i in range(12)])
+    norm = scene_normalisation(tmp_path)
+    assert not norm.is_identity
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(50, 3)) + (5.0, -3.0, 2.0)
+    normals = rng.normal(size=(50, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    ply = tmp_path / "points.ply"
+    write_ply(ply, {**dict(zip("xyz", xyz.T.astype(np.float32))),
+                    **dict(zip(("nx", "ny", "nz"), normals.T.astype(np.float32)))})
+    views = Views.from_split(load_split(tmp_path, "train"))
+    cloud = initial_cloud(InitConfig(source=source, ply_path=str(ply) if source == "ply" else None), tmp_path, views)
+    np.testing.assert_allclose(cloud.xyz, norm.to_scene(xyz), atol=1e-5)
+    np.testing.assert_allclose(norm.rotate_to_capture(cloud.normals), normals, atol=1e-5)
+    assert np.abs(cloud.xyz).max() < 3  # in the scene frame, not 5 units off
