@@ -151,12 +151,13 @@ def time_steps(run, model, pool, scene, steps: int) -> dict:
 
     key = jax.random.PRNGKey(0)
     points = model.state.point_state(model.scene.points)
-    state = init_train_state(run.train, run.render, points, key).replace(params=model.state.params)
+    state = init_train_state(run.train, run.render, points, key, total_steps=run.total_steps).replace(
+        params=model.state.params)
     train_render = run.train_render
     batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i), train_render.pixel_samples)
                for i in range(steps + 1)]
     scene = scene.fitted(train_render, batches[0].rays)  # the packing budget, as training fits it
-    step = make_train_step(run.train, train_render)
+    step = make_train_step(run.train, train_render, total_steps=run.total_steps)
     _, per_step, first_s, lost = timed_steps(step, state, scene, batches)
     segs = intersect(scene.tree, batches[0].rays, run.render.kdtree, scene.capacities)
     found = np.asarray(segs.valid).sum(1)

@@ -102,12 +102,12 @@ class Peak:
 
 
 @functools.lru_cache(maxsize=8)
-def _step_fn(train, render):
+def _step_fn(train, render, total_steps):
     """The jitted step on one device (a mesh of one: a plain ``jax.jit``, whose program XLA analyses)."""
     from ne_jax.devices import ray_mesh
     from ne_jax.train.step import make_train_step
 
-    return make_train_step(train, render, ray_mesh(1))
+    return make_train_step(train, render, ray_mesh(1), total_steps=total_steps)
 
 
 def program_memory(compiled) -> dict:
@@ -142,12 +142,13 @@ def step_cost(run, points, pool, steps: int, repeats: int, compiled: dict | None
         batches = [sample_batch(run.sampler, pool, jax.random.fold_in(key, i), render.pixel_samples)
                    for i in range(steps + 1)]
         scene = scene.fitted(render, batches[0].rays)
-        state = init_train_state(run.train, run.render, points, jax.random.key(1))
+        state = init_train_state(run.train, run.render, points, jax.random.key(1), total_steps=run.total_steps)
         t0 = time.perf_counter()
         compiled = {} if compiled is None else compiled
-        key = (run.train, render, points.capacity, int(scene.tree.depth), run.sampler.batch_size, scene.capacities)
+        key = (run.train, run.total_steps, render, points.capacity, int(scene.tree.depth), run.sampler.batch_size,
+               scene.capacities)
         if key not in compiled:
-            compiled[key] = _step_fn(run.train, render).lower(state, scene, batches[0]).compile()
+            compiled[key] = _step_fn(run.train, render, run.total_steps).lower(state, scene, batches[0]).compile()
         step = compiled[key]
         compile_s = time.perf_counter() - t0
         state, best, first, lost = timed_steps(step, state, scene, batches)
@@ -238,7 +239,8 @@ def study(a: Axes, scene_root: Path, steps: int, repeats: int, render_repeats: i
     scenes = [scene_dir(p, scene_root, log) for p in a.images]
     ref_points = a.clouds[0]
     pts = {n: common.bench_cloud(n, run.render.shading.feature_dim, INIT_CAPACITY_HEADROOM) for n in a.clouds}
-    params = init_train_state(run.train, run.render, pts[ref_points], jax.random.key(1)).params
+    params = init_train_state(run.train, run.render, pts[ref_points], jax.random.key(1),
+                              total_steps=run.total_steps).params
     rows, compiled = [], {}
 
     def add(axis, value, what, **fields):

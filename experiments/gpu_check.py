@@ -157,7 +157,7 @@ def rates(run, scene: Path, steps: int, repeats: int) -> dict:
     t0 = time.perf_counter()
     built = PointScene.build(points, run.render, run.capacities)
     build_s = time.perf_counter() - t0
-    state = init_train_state(run.train, run.render, points, jax.random.key(1))
+    state = init_train_state(run.train, run.render, points, jax.random.key(1), total_steps=run.total_steps)
     pool = build_pool(run.sampler, load_split(scene, "train"), run.background)
     model = types.SimpleNamespace(state=state, scene=built)  # what time_steps reads of a trained model
     step = common.time_steps(run, model, pool, built, steps)

@@ -104,9 +104,9 @@ def whole_calls(quick: bool, run=None):
     cfg = run.train_render
     train_scene = scene.fitted(cfg, trays)  # the packing budget, as training fits it
     bg = jnp.ones(3)
-    state = init_train_state(run.train, cfg, scene.points, jax.random.key(1))
+    state = init_train_state(run.train, cfg, scene.points, jax.random.key(1), total_steps=run.total_steps)
     render = jax.jit(lambda p, sc, r: render_rays(run.render, p, sc, r, bg))
-    step = make_train_step(run.train, cfg)
+    step = make_train_step(run.train, cfg, total_steps=run.total_steps)
     batch = Batch(rays=trays, pixel=jnp.zeros(TRAIN_RAYS, jnp.int32), in_band=jnp.zeros(TRAIN_RAYS, bool),
                   background=bg)
     return (lambda st: render(st.params, scene, rrays)), (lambda st: step(st, train_scene, batch)), state
@@ -174,7 +174,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
         cfg = run.train_render if kind == "train" else run.render
         sc = scene.fitted(cfg, trays) if kind == "train" else scene  # the packing budget, as training fits it
         cap, tc, tree = sc.capacities, cfg.kdtree, sc.tree
-        state = init_train_state(run.train, cfg, sc.points, jax.random.key(1))
+        state = init_train_state(run.train, cfg, sc.points, jax.random.key(1), total_steps=run.total_steps)
         aux = kind == "train"
         r = rays.num_rays
         seg = add("traversal", kind, r, lambda tr, ry: intersect(tr, ry, tc, cap), tree, rays)
@@ -233,7 +233,7 @@ def profile_stages(repeats: int, quick: bool, run=None) -> dict:
             return jax.grad(f)(tr)
 
         add("forward + backward (render VJP)", kind, r, fwd_bwd, state.trainables, sc, rays)
-        step = make_train_step(run.train, cfg)
+        step = make_train_step(run.train, cfg, total_steps=run.total_steps)
         batch = Batch(rays=rays, pixel=jnp.zeros(r, jnp.int32), in_band=jnp.zeros(r, bool), background=bg)
         t = best_time(lambda: step(state, sc, batch)[1]["loss/total"], repeats)[1]
         row("whole training step", kind, r, t)

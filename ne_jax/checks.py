@@ -10,7 +10,7 @@ Usage::
 
     cfg = RenderConfig(checks=True)
     render_chunked(cfg, params, scene, rays, bg)         # raises NonFiniteError on a NaN / Inf
-    make_train_step(train_cfg, cfg)(state, scene, batch) # the same for the training step
+    make_train_step(train_cfg, cfg, total_steps=n)(state, scene, batch)  # the same for the training step
 
 Inside a function (under ``checks``)::
 

@@ -68,13 +68,12 @@ def mini_init(*, resolution: int = 48, num_points: int = 1500) -> InitConfig:
 
 def mini_run(**changes) -> RunConfig:
     """A training run of 3 epochs x 3 steps of 128 rays on :func:`mini_render`, point-cloud rounds
-    after epochs 1 and 2, with ``changes`` (:meth:`RunConfig.replace`: the schedule follows the
-    length)."""
+    after epochs 1 and 2, with ``changes`` (:meth:`RunConfig.replace`)."""
     run = RunConfig(name="test", render=mini_render(), capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
                     train=TrainConfig(lr=5e-3), init=mini_init(),
                     rounds=RoundConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
                     epochs=3, steps_per_epoch=3, round_epochs=(1, 2))
-    return run.with_schedule().replace(**changes)
+    return run.replace(**changes)
 
 
 def short_run(**changes) -> RunConfig:

@@ -20,7 +20,7 @@ from ne_jax.render.shading import init_color_model
 from ne_jax.train import make_train_step
 
 from hard_cases.render_scene import CFG, N_RAYS, build, scene_inputs
-from hard_cases.test_train_step import TCFG, make_batch, make_train_state
+from hard_cases.test_train_step import SCHEDULE_STEPS, TCFG, make_batch, make_train_state
 
 OFF = CFG.replace(chunk=N_RAYS)
 ON = OFF.replace(checks=True)
@@ -128,7 +128,7 @@ def test_train_step_names_the_stage(world):
     _, scene, rays, bg = world
     cfg = ON.with_effects(specular=False)
     params = init_color_model(cfg.shading, jax.random.key(0))
-    step = make_train_step(TCFG, cfg)
+    step = make_train_step(TCFG, cfg, total_steps=SCHEDULE_STEPS)
     state, batch = make_train_state(scene, params), make_batch(rays, bg)
     new, m = step(state, scene, batch)  # finite: applied as without checks
     assert bool(m["ok"]) and int(new.step) == int(state.step) + 1

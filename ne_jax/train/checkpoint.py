@@ -263,8 +263,9 @@ def _template(train_cfg: TrainConfig, render_cfg: RenderConfig, like_state: Trai
         normal=jax.ShapeDtypeStruct((capacity, 3), jnp.float32),
         ist=jax.ShapeDtypeStruct((capacity, 3, 3), jnp.float32))
     if like_state is None:
-        like_state = jax.eval_shape(lambda p: init_train_state(train_cfg, render_cfg, p, jax.random.key(0)),
-                                    points_like)
+        # shapes only: the optimiser state's structure does not depend on the schedule's length
+        like_state = jax.eval_shape(lambda p: init_train_state(train_cfg, render_cfg, p, jax.random.key(0),
+                                                               total_steps=1), points_like)
     return like_state, points_like
 
 

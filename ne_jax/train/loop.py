@@ -301,7 +301,8 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         log(f"resuming {run_dir} from {latest.name} (step {int(state.step)}, epoch {len(history)})")
     elif start is not None:
         points = start.points
-        state = init_train_state(run.train, run.render, points, k_model).replace(params=start.params)
+        state = init_train_state(run.train, run.render, points, k_model,
+                                 total_steps=run.total_steps).replace(params=start.params)
         initial = {"source": "model", "points": int(np.asarray(points.alive).sum()), "capacity": points.capacity,
                    "ground_truth": False, **_json_safe(dict(start.note))}
     else:
@@ -315,7 +316,7 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
         if cloud.is_ground_truth:
             log("note: the initial cloud is the benchmark's ground-truth surface samples (as asked); "
                 "results of this run are labelled 'initial cloud: ground truth'")
-        state = init_train_state(run.train, run.render, points, k_model)
+        state = init_train_state(run.train, run.render, points, k_model, total_steps=run.total_steps)
     if latest is None:
         carried = start is not None and start.scene is not None
         scene = (start.scene.replace(points=points) if carried
@@ -324,7 +325,9 @@ def train(run: RunConfig, scene_dir: str | Path, run_dir: str | Path, *, resume:
     else:
         scene = _scene_of(points, run.render, run_dir, saved_capacities(meta, run.capacities))
     render = run.train_render  # the images' config on the training batches' grid
-    step_fn = _train_step(run.train, render)  # compiles once per capacities the scene carries
+    # compiles once per capacities the scene carries; the length is a key of the cache, so a run of
+    # another length (a fine-tune) gets its own step
+    step_fn = _train_step(run.train, render, total_steps=run.total_steps)
 
     def fit(scene, epoch):  # the packing budget for the next epoch's scene, probed on its rays
         probe = sample_batch(sampler, pool, jax.random.fold_in(k_rounds, 10_000 + epoch), render.pixel_samples).rays

@@ -56,11 +56,8 @@ class RunConfig:
     """Everything a training run needs (hashable, saved as ``config.json``). Presets :meth:`tiny`,
     :meth:`default`, :meth:`paper`; change a preset with :meth:`replace` / :meth:`with_schedule`.
 
-    The learning-rate schedule (``train.total_steps``) of a preset spans the run
-    (``epochs * steps_per_epoch``), and keeps spanning it however the length is changed: the preset's
-    keyword arguments, :meth:`replace` and :meth:`with_schedule` all re-fit it. A schedule of another
-    length is kept only when asked for: ``replace(train=...)`` with another ``total_steps``, or a
-    config built with one (``RunConfig(...)`` without :meth:`with_schedule`)."""
+    The learning-rate schedule's cosine decay always spans the run: its length is
+    :attr:`total_steps` (``epochs * steps_per_epoch``), not a setting of its own."""
 
     name: str = "custom"
     """Preset name (informational; a config built by hand is ``"custom"``, not the ``default`` preset)."""
@@ -98,26 +95,19 @@ class RunConfig:
                              f"found {self.round_epochs}")
 
     def replace(self, **changes) -> RunConfig:
-        """This config with ``changes``; a schedule that spans the run (:attr:`schedule_spans_run`)
-        is re-fitted to a new ``epochs`` / ``steps_per_epoch``, unless ``changes`` give a ``train``
-        with another ``total_steps`` (then that one is kept)."""
-        new = dataclasses.replace(self, **changes)
-        explicit = "train" in changes and changes["train"].total_steps != self.train.total_steps
-        if self.schedule_spans_run and not explicit and not new.schedule_spans_run:
-            new = dataclasses.replace(new, train=new.train.replace(total_steps=new.total_steps))
-        return new
+        """This config with ``changes``."""
+        return dataclasses.replace(self, **changes)
 
     def with_schedule(self, epochs: int | None = None, steps_per_epoch: int | None = None) -> RunConfig:
-        """Change the length of the run (``None``: keep); the cosine decay spans the new length
-        (also when it did not span the old one)."""
+        """Change the length of the run (``None``: keep); the cosine decay spans the new length."""
         epochs = self.epochs if epochs is None else int(epochs)
         steps = self.steps_per_epoch if steps_per_epoch is None else int(steps_per_epoch)
-        return dataclasses.replace(self, epochs=epochs, steps_per_epoch=steps,
-                                   train=self.train.replace(total_steps=epochs * steps))
+        return dataclasses.replace(self, epochs=epochs, steps_per_epoch=steps)
 
     @property
     def total_steps(self) -> int:
-        """Steps of the whole run: ``epochs * steps_per_epoch``."""
+        """Steps of the whole run: ``epochs * steps_per_epoch``, the length of the learning-rate
+        schedule (:meth:`~ne_jax.train.state.TrainConfig.schedule`)."""
         return self.epochs * self.steps_per_epoch
 
     @property
@@ -125,11 +115,6 @@ class RunConfig:
         """The render config of the training step and its batches: :attr:`render` (what images are
         rendered with) on the training batches' grid, ``sampler.pixel_samples``."""
         return self.render.replace(pixel_samples=int(self.sampler.pixel_samples))
-
-    @property
-    def schedule_spans_run(self) -> bool:
-        """Whether the learning-rate schedule decays over exactly the run's :attr:`total_steps`."""
-        return int(self.train.total_steps) == self.total_steps
 
     def round_after(self, epoch: int) -> bool:
         """Whether a point-cloud round follows epoch ``epoch`` (1-based); never after the last."""
@@ -151,7 +136,7 @@ class RunConfig:
                    train=TrainConfig(lr=5e-3, confidence_lr=10.0),
                    rounds=RoundConfig(grow_rays=4096, outlier_keep_confidence=0.5),
                    epochs=6, steps_per_epoch=125, round_epochs=(2, 4))
-        return base.with_schedule().replace(**changes)
+        return base.replace(**changes)
 
     @classmethod
     def default(cls, **changes) -> RunConfig:
@@ -167,7 +152,7 @@ class RunConfig:
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
                    sampler=SamplerConfig(batch_size=2048, pixel_samples=1), train=TrainConfig(lr=5e-3),
                    epochs=12, steps_per_epoch=500, round_epochs=(3, 9))
-        return base.with_schedule().replace(**changes)
+        return base.replace(**changes)
 
     @classmethod
     def paper(cls, **changes) -> RunConfig:
@@ -180,7 +165,7 @@ class RunConfig:
                    init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
                    sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),
                    rounds=RoundConfig(grow_chunk=128), epochs=16, steps_per_epoch=5000, round_epochs=(4, 12))
-        return base.with_schedule().replace(**changes)
+        return base.replace(**changes)
 
 
 PRESETS = {"tiny": RunConfig.tiny, "default": RunConfig.default, "paper": RunConfig.paper}

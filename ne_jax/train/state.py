@@ -31,14 +31,14 @@ LR_FINAL_FRACTION = 0.01
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Static training-step settings (hashable)."""
+    """Static training-step settings (hashable). The length of the learning-rate schedule is not
+    one: it is the run's (:attr:`~ne_jax.train.run.RunConfig.total_steps`), passed to
+    :meth:`schedule` / :meth:`optimizer`."""
 
     loss: LossConfig = LossConfig()
     """Loss weights and shapes."""
     lr: float = 2e-3
     """Adam's peak learning rate (docs/design.md facts: 2e-3)."""
-    total_steps: int = 100_000
-    """Steps of the cosine decay; the rate stays at its floor afterwards."""
     confidence_lr: float = 1.0
     """Multiplier of the learning rate of the confidence logits (Adam's steps of ``conf_logit`` are
     scaled by it). With a density gate (``KDTreeConfig.density_falloff``) the confidences move the
@@ -51,19 +51,21 @@ class TrainConfig:
     def __post_init__(self):
         if not self.lr > 0:
             raise ValueError(f"TrainConfig.lr: expected > 0, found {self.lr}")
-        if int(self.total_steps) < 1:
-            raise ValueError(f"TrainConfig.total_steps: expected an integer >= 1, found {self.total_steps}")
         if not self.confidence_lr > 0:
             raise ValueError(f"TrainConfig.confidence_lr: expected > 0, found {self.confidence_lr}")
 
-    def schedule(self) -> optax.Schedule:
-        """Learning rate by step: cosine decay from ``lr`` to ``lr * LR_FINAL_FRACTION``."""
-        return optax.cosine_decay_schedule(self.lr, int(self.total_steps), alpha=LR_FINAL_FRACTION)
+    def schedule(self, total_steps: int) -> optax.Schedule:
+        """Learning rate by step: cosine decay from ``lr`` to ``lr * LR_FINAL_FRACTION`` over
+        ``total_steps`` (a run's :attr:`~ne_jax.train.run.RunConfig.total_steps`: the decay spans the
+        run), the floor afterwards."""
+        if int(total_steps) < 1:
+            raise ValueError(f"TrainConfig.schedule: expected total_steps an integer >= 1, found {total_steps}")
+        return optax.cosine_decay_schedule(self.lr, int(total_steps), alpha=LR_FINAL_FRACTION)
 
-    def optimizer(self) -> optax.GradientTransformation:
-        """Adam with :meth:`schedule` on ``{"params": ..., "points": ...}``, the confidence logits'
-        steps scaled by :attr:`confidence_lr`."""
-        adam = optax.adam(self.schedule())  # optax's b1 0.9, b2 0.999, eps 1e-8
+    def optimizer(self, total_steps: int) -> optax.GradientTransformation:
+        """Adam with :meth:`schedule` over ``total_steps`` on ``{"params": ..., "points": ...}``, the
+        confidence logits' steps scaled by :attr:`confidence_lr`."""
+        adam = optax.adam(self.schedule(total_steps))  # optax's b1 0.9, b2 0.999, eps 1e-8
         if self.confidence_lr == 1.0:
             return adam
         k = self.confidence_lr
@@ -140,16 +142,17 @@ def _trainable_points(points: PointState, ist: bool) -> dict:
 
 
 def init_train_state(cfg: TrainConfig, render_cfg: RenderConfig, points: PointState,
-                     key: jax.Array) -> TrainState:
+                     key: jax.Array, *, total_steps: int) -> TrainState:
     """A fresh state: random colour model (``render_cfg.shading``), the cloud's features and
-    confidence logits as trainables, Adam's zero moments, step 0."""
+    confidence logits as trainables, Adam's zero moments (of :meth:`TrainConfig.optimizer` over
+    ``total_steps``, the run's length), step 0."""
     if points.feature_dim != render_cfg.shading.feature_dim:
         raise ValueError(f"points.feature: width {points.feature_dim} != render_cfg.shading.feature_dim "
                          f"{render_cfg.shading.feature_dim}")
     k_model, k_state = jax.random.split(key)
     params = init_color_model(render_cfg.shading, k_model)
     pts = _trainable_points(points, cfg.train_ist)
-    opt_state = cfg.optimizer().init({"params": params, "points": pts})
+    opt_state = cfg.optimizer(total_steps).init({"params": params, "points": pts})
     return TrainState(params=params, points=pts, opt_state=opt_state, step=jnp.zeros((), jnp.int32),
                       key=k_state, skipped=jnp.zeros((), jnp.int32))
 

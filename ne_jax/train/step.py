@@ -1,8 +1,9 @@
 """The jitted training step: render a batch, the losses, Adam, and a guard against non-finite values.
 
-``step_fn = make_train_step(cfg, render_cfg)``; ``state, metrics = step_fn(state, scene, batch)``.
-It compiles once per ``(cfg, render_cfg)`` and per shape of its inputs (fixed: the batch size is
-static in the sampler, the cloud's capacity in the scene), so a training loop never recompiles.
+``step_fn = make_train_step(cfg, render_cfg, total_steps=run.total_steps)``;
+``state, metrics = step_fn(state, scene, batch)``. It compiles once per ``(cfg, render_cfg,
+total_steps)`` and per shape of its inputs (fixed: the batch size is static in the sampler, the
+cloud's capacity in the scene), so a training loop never recompiles.
 
 Gradients: one forward pass through :func:`~ne_jax.render.renderer.render_rays_with_aux` and one
 VJP of it, split in two stages: the render (trainables -> per-ray colours and per-segment
@@ -50,10 +51,11 @@ def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
 
 
-def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | None = None):
-    """The jitted ``step_fn(state, scene, batch) -> (state, metrics)``, the batch's rays split over
-    ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; a batch that does not split evenly over
-    it runs on the largest leading part it does split over, :func:`~ne_jax.devices.even_mesh`):
+def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | None = None, *, total_steps: int):
+    """The jitted ``step_fn(state, scene, batch) -> (state, metrics)`` of a run of ``total_steps``
+    steps (the length of the learning-rate schedule, :meth:`TrainConfig.schedule`), the batch's
+    rays split over ``mesh`` (default :func:`~ne_jax.devices.default_mesh`; a batch that does not
+    split evenly over it runs on the largest leading part it does split over, :func:`~ne_jax.devices.even_mesh`):
     each device renders its rays and differentiates its share of the losses, the terms and
     gradients are averaged over the devices (``pmean``), and the replicated Adam update follows.
 
@@ -73,23 +75,23 @@ def make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh | Non
     """
     mesh = default_mesh() if mesh is None else mesh
     if mesh.devices.size == 1 or render_cfg.checks:
-        return _make_train_step(cfg, render_cfg, mesh)
+        return _make_train_step(cfg, render_cfg, mesh, total_steps)
     steps: dict = {}  # one step per mesh the batch sizes split over (one, for a fixed batch size)
 
     def step_on_even_mesh(state: TrainState, scene: PointScene, batch: Batch):
         sub = even_mesh(batch.rays.num_rays // render_cfg.pixel_samples ** 2, mesh)  # whole pixels per device
         if sub not in steps:
-            steps[sub] = _make_train_step(cfg, render_cfg, sub)
+            steps[sub] = _make_train_step(cfg, render_cfg, sub, total_steps)
         return steps[sub](state, scene, batch)
 
     return step_on_even_mesh
 
 
-def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh):
+def _make_train_step(cfg: TrainConfig, render_cfg: RenderConfig, mesh: Mesh, total_steps: int):
     """:func:`make_train_step` on ``mesh``, the batch size a multiple of its size."""
     weights = cfg.loss.weights()
-    optimizer = cfg.optimizer()
-    schedule = cfg.schedule()
+    optimizer = cfg.optimizer(total_steps)
+    schedule = cfg.schedule(total_steps)
     stochastic = render_cfg.quadrature.rule == "stochastic"
     per_pixel = render_cfg.pixel_samples ** 2
 

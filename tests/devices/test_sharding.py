@@ -120,11 +120,12 @@ def _batch(rays, bg):
 @multidevice
 def test_sharded_training_step_equals_single_device_and_compiles_once(scene_and_rays):
     params, scene, rays, bg = scene_and_rays
-    tcfg = TrainConfig(total_steps=10)
-    state = init_train_state(tcfg, CFG, scene.points, jax.random.key(0))
-    state = state.replace(params=params, opt_state=tcfg.optimizer().init({"params": params, "points": state.points}))
+    tcfg = TrainConfig()
+    state = init_train_state(tcfg, CFG, scene.points, jax.random.key(0), total_steps=10)
+    state = state.replace(params=params, opt_state=tcfg.optimizer(10).init({"params": params, "points": state.points}))
     batch = _batch(rays, bg)
-    one, many = make_train_step(tcfg, CFG, ray_mesh(1)), make_train_step(tcfg, CFG, ray_mesh(4))
+    one, many = (make_train_step(tcfg, CFG, ray_mesh(1), total_steps=10),
+                 make_train_step(tcfg, CFG, ray_mesh(4), total_steps=10))
     compiles = []  # (one device, four devices) compilations of each step
     s1, s4 = state, state
     for _ in range(3):
@@ -151,12 +152,12 @@ def test_a_batch_that_does_not_split_over_the_mesh_trains_on_the_part_it_splits_
     assert even_mesh(64, mesh) is mesh
     assert even_mesh(66, mesh).devices.size == 3 and even_mesh(67, mesh).devices.size == 1
     rays = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a[:2]]), rays)
-    tcfg = TrainConfig(total_steps=10)
-    state = init_train_state(tcfg, CFG, scene.points, jax.random.key(0))
-    state = state.replace(params=params, opt_state=tcfg.optimizer().init({"params": params, "points": state.points}))
+    tcfg = TrainConfig()
+    state = init_train_state(tcfg, CFG, scene.points, jax.random.key(0), total_steps=10)
+    state = state.replace(params=params, opt_state=tcfg.optimizer(10).init({"params": params, "points": state.points}))
     batch = _batch(rays, bg)
-    s1, m1 = make_train_step(tcfg, CFG, ray_mesh(1))(state, scene, batch)
-    step = make_train_step(tcfg, CFG)
+    s1, m1 = make_train_step(tcfg, CFG, ray_mesh(1), total_steps=10)(state, scene, batch)
+    step = make_train_step(tcfg, CFG, total_steps=10)
     with count_compiles() as compiled:
         s3, m3 = step(state, scene, batch)
     assert {d.id for d in jax.tree_util.tree_leaves(s3.params)[0].devices()} == {0, 1, 2}

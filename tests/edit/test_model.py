@@ -44,7 +44,7 @@ def trained(scene_dir, tmp_path_factory):
     run = RunConfig(name="test", render=render, capacities=MINI_CAPS, sampler=SamplerConfig(batch_size=128),
                     train=TrainConfig(lr=5e-3),
                     init=init, rounds=RoundConfig(grow_rays=256, grow_chunk=128, outlier_neighbors=16),
-                    epochs=1, steps_per_epoch=2, round_epochs=(1, 0)).with_schedule()
+                    epochs=1, steps_per_epoch=2, round_epochs=(1, 0))
     out = tmp_path_factory.mktemp("run") / "trained"
     train(run, scene_dir, out, progress=False, log=lambda s: None)
     return out

@@ -48,8 +48,9 @@ def initial_model(mini, tmp_path_factory):
     views = Views.from_split(load_split(scene_dir, "train"))
     k_points, k_model, *_ = _keys(run.seed)  # train()'s keys
     points = initial_points(run, initial_cloud(run.init, scene_dir, views), views, k_points)
-    init = jax.jit(init_train_state, static_argnums=(0, 1))  # one program, not flax's eager operations
-    model = TrainedModel(run=run, state=init(run.train, run.render, points, k_model),
+    # one program, not flax's eager operations
+    init = jax.jit(init_train_state, static_argnums=(0, 1), static_argnames="total_steps")
+    model = TrainedModel(run=run, state=init(run.train, run.render, points, k_model, total_steps=run.total_steps),
                          scene=PointScene.build(points, run.render, run.capacities), scene_dir=scene_dir)
     epochs = [{"epoch": 1, "psnr": 12.5, "train_seconds": 3.0}]
     return save_trained(model, tmp_path_factory.mktemp("initial_model") / "run", metrics={"epochs": epochs})
@@ -129,7 +130,7 @@ def test_training_candidates_change_one_knob():
     assert {"K=8", "K=8, s x0.5", "K=8, s x0.5, steps x0.5"} <= set(labels)
     assert labels["K=8"].render.kdtree.replace(knn_k=4) == narrow.render.kdtree
     half = by["steps x0.5"]
-    assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.train.total_steps == half.total_steps
+    assert half.steps_per_epoch == own.steps_per_epoch // 2 and half.epochs == own.epochs
     assert by["own, seed 1"] == own.replace(seed=own.seed + 1)
     narrow = own.capacities.frontier // 4  # appended last, so earlier indices keep their runs
     assert cands[-2].label == f"frontier={narrow}" and cands[-2].run.replace(capacities=own.capacities) == own

@@ -42,7 +42,7 @@ def test_a_render_and_a_round(toy):
     from ne_jax.train.state import init_train_state
 
     points = bench_cloud(a.clouds[0], run.render.shading.feature_dim, INIT_CAPACITY_HEADROOM)
-    params = init_train_state(run.train, run.render, points, jax.random.key(1)).params
+    params = init_train_state(run.train, run.render, points, jax.random.key(1), total_steps=run.total_steps).params
     r = C.render_cost(run, params, points, scenes[0], repeats=1)
     assert r["px"] == 16 and r["rays"] == 16 * 16 * run.render.pixel_samples ** 2 and r["rays_per_s"] > 0
     pool, _ = C.pool_cost(run, scenes[0], repeats=1)

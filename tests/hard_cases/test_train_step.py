@@ -32,8 +32,10 @@ from ne_jax.train.sampler import Batch
 from .common import DTYPE, X64, aimed_rays, assert_finite, make_cloud, make_rays, make_state
 from .render_scene import CAPACITY, CAPS, CFG, N_POINTS, N_RAYS, build, scene_inputs
 
-TCFG = TrainConfig(total_steps=100)
-STEP = make_train_step(TCFG, CFG)
+TCFG = TrainConfig()
+SCHEDULE_STEPS = 100
+"""The length of the learning-rate schedule (a run's ``total_steps``)."""
+STEP = make_train_step(TCFG, CFG, total_steps=SCHEDULE_STEPS)
 PHOTO_RTOL = 1e-12 if X64 else 1e-6
 
 
@@ -43,10 +45,10 @@ def inputs():
 
 
 def make_train_state(scene: PointScene, params=None):
-    state = init_train_state(TCFG, CFG, scene.points, jax.random.key(0))
+    state = init_train_state(TCFG, CFG, scene.points, jax.random.key(0), total_steps=SCHEDULE_STEPS)
     if params is not None:  # Adam's moments in the params' dtype
         state = state.replace(params=params,
-                              opt_state=TCFG.optimizer().init({"params": params, "points": state.points}))
+                              opt_state=TCFG.optimizer(SCHEDULE_STEPS).init({"params": params, "points": state.points}))
     return state
 
 

@@ -67,7 +67,7 @@ def _model(xyz, seed, capacity=None, effects=Effects()) -> TrainedModel:
     pts = PointState.from_numpy(xyz, capacity, render.shading.feature_dim, normal=normals,
                                 key=jax.random.PRNGKey(seed))
     pts = pts.replace(feature=3.0 * pts.feature)  # colours and densities that differ visibly across points
-    state = init_train_state(run.train, render, pts, jax.random.key(seed + 1))
+    state = init_train_state(run.train, render, pts, jax.random.key(seed + 1), total_steps=run.total_steps)
     return TrainedModel(run=run, state=state, scene=PointScene.build(pts, render), scene_dir=None, meta={})
 
 

@@ -328,9 +328,9 @@ def test_training_step_runs_with_point_sampling(setup):
     the render's gradients under both rules are checked above."""
     cfg, _, scene, camera = setup
     cfg = _stochastic(cfg.replace(integration=SAMPLES))
-    tcfg = TrainConfig(total_steps=100)
-    state = init_train_state(tcfg, cfg, scene.points, jax.random.key(1))
-    step_fn = make_train_step(tcfg, cfg)
+    tcfg = TrainConfig()
+    state = init_train_state(tcfg, cfg, scene.points, jax.random.key(1), total_steps=100)
+    step_fn = make_train_step(tcfg, cfg, total_steps=100)
     rays = camera_rays(camera, cameras.NEAR, cameras.FAR)
     target = jnp.concatenate([jnp.full((rays.num_rays, 3), 0.4), jnp.ones((rays.num_rays, 1))], -1)
     batch = Batch(rays=rays.replace(target=target), pixel=jnp.arange(rays.num_rays, dtype=jnp.int32),

@@ -27,7 +27,7 @@ from ne_jax.train.checkpoint import (
     save_checkpoint,
 )
 
-from .test_step import RCFG, SCFG, TCFG
+from .test_step import RCFG, SCFG, SCHEDULE_STEPS, TCFG
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,7 +42,7 @@ from ne_jax.train import TrainConfig, init_train_state
 
 SMALL_RCFG = RenderConfig(kdtree=KDTreeConfig(candidate_min=16, knn_k=8, num_render_levels=2),
                           quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), chunk=1024)
-SMALL_TCFG = TrainConfig(total_steps=50)
+SMALL_TCFG = TrainConfig()
 
 def small_run(step=0):
     '''(state, points) with every leaf non-trivial: 40 slots, 30 alive, random arrays everywhere.'''
@@ -50,7 +50,7 @@ def small_run(step=0):
     pts = PointState.from_numpy(rng.uniform(-1, 1, (30, 3)), capacity=40, feature_dim=32,
                                 normal=rng.normal(size=(30, 3)), key=jax.random.key(0))
     pts = pts.replace(ist=jnp.asarray(rng.normal(size=(40, 3, 3)), jnp.float32), alive=pts.alive.at[3].set(False))
-    state = init_train_state(SMALL_TCFG, SMALL_RCFG, pts, jax.random.key(1))
+    state = init_train_state(SMALL_TCFG, SMALL_RCFG, pts, jax.random.key(1), total_steps=50)
     leaves, treedef = jax.tree_util.tree_flatten(state.replace(key=jnp.zeros((), jnp.int32)))
     leaves = [jnp.asarray(rng.normal(size=x.shape), x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
               for x in leaves]
@@ -93,7 +93,7 @@ def _train(step_fn, state, scene, pool, n):
 
 def test_resume_is_exact_two_plus_two_equals_four(world, tmp_path):
     step_fn, pool, scene, points = world["step_fn"], world["pool"], world["scene"], world["points"]
-    fresh = init_train_state(TCFG, RCFG, points, jax.random.key(1))
+    fresh = init_train_state(TCFG, RCFG, points, jax.random.key(1), total_steps=SCHEDULE_STEPS)
     four = _train(step_fn, fresh, scene, pool, 4)
     two = _train(step_fn, fresh, scene, pool, 2)
     save_checkpoint(tmp_path, two, points, TCFG, RCFG, extra={"epoch": 0})
@@ -199,7 +199,7 @@ def test_truncated_or_altered_arrays_are_refused(saved):
 def test_shape_mismatch_names_the_array(saved):
     good, pts = small_run(0)
     grown = pts.replace(**{k: jnp.concatenate([v, v[:8]]) for k, v in vars(pts).items()})  # capacity 40 -> 48
-    bigger = init_train_state(SMALL_TCFG, SMALL_RCFG, grown, jax.random.key(0))
+    bigger = init_train_state(SMALL_TCFG, SMALL_RCFG, grown, jax.random.key(0), total_steps=50)
     with pytest.raises(CheckpointError, match=r"state/points/conf_logit: expected shape \(48,\) dtype float32, "
                                               r"found shape \(40,\) dtype float32"):
         load_checkpoint(saved, SMALL_TCFG, SMALL_RCFG, like_state=bigger)

@@ -124,8 +124,16 @@ def test_resume_after_an_epoch_is_exact(full_run, scene_dir, tmp_path):
     assert older.recorded_cpu_seconds is None
 
 
+def test_the_cached_step_is_one_per_run_length():
+    """``train()`` shares jitted steps between runs of the same configs; a run of another length (a
+    fine-tune) gets a step of its own schedule, not the first run's."""
+    step = loop._train_step(RUN.train, RUN.train_render, total_steps=RUN.total_steps)
+    assert loop._train_step(RUN.train, RUN.train_render, total_steps=RUN.total_steps) is step
+    assert loop._train_step(RUN.train, RUN.train_render, total_steps=RUN.total_steps + 1) is not step
+
+
 def test_resuming_a_run_of_another_config_names_the_fields(full_run, scene_dir):
-    other = RUN.replace(train=TrainConfig(lr=1e-3, total_steps=9))
+    other = RUN.replace(train=TrainConfig(lr=1e-3))
     with pytest.raises(CheckpointError, match=r"train\.lr"):
         train(other, scene_dir, full_run.run_dir, progress=False, log=lambda s: None)
 
@@ -245,7 +253,7 @@ def test_growth_past_capacity_reallocates_and_the_step_runs_on_the_new_shapes(fu
     assert mu.shape[0] == grown.capacity and not np.asarray(mu)[slots].any()
     scene = PointScene.build(grown, run.render)
     pool = _pool(full_run, run)
-    step = make_train_step(run.train, run.render)
+    step = make_train_step(run.train, run.render, total_steps=run.total_steps)
     new_state, m = step(state, scene, sample_batch(run.sampler, pool, jax.random.key(0)))
     assert bool(m["ok"]) and int(new_state.step) == int(state.step) + 1
 

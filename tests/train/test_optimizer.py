@@ -11,6 +11,9 @@ import pytest
 from ne_jax.geometry.points import PointState
 from ne_jax.train.state import TrainConfig, TrainState
 
+STEPS = 100
+"""The length of the learning-rate schedule."""
+
 
 def _tree(c=5):
     return {"params": {"w": jnp.ones((3, 2))},
@@ -22,8 +25,8 @@ def test_confidence_steps_are_scaled_and_nothing_else(k):
     tree = _tree()
     grads = jax.tree_util.tree_map(lambda a: jnp.full_like(a, 0.3), tree)
     base, scaled = TrainConfig(lr=1e-2), TrainConfig(lr=1e-2, confidence_lr=k)
-    u1, _ = base.optimizer().update(grads, base.optimizer().init(tree), tree)
-    u2, _ = scaled.optimizer().update(grads, scaled.optimizer().init(tree), tree)
+    u1, _ = base.optimizer(STEPS).update(grads, base.optimizer(STEPS).init(tree), tree)
+    u2, _ = scaled.optimizer(STEPS).update(grads, scaled.optimizer(STEPS).init(tree), tree)
     np.testing.assert_allclose(np.asarray(u2["points"]["conf_logit"]), k * np.asarray(u1["points"]["conf_logit"]),
                                rtol=1e-6)
     for path in (("params", "w"), ("points", "feature")):
@@ -38,7 +41,7 @@ def test_rejects_a_non_positive_rate():
 def test_moments_follow_a_grown_cloud_with_the_scaled_optimizer():
     cfg = TrainConfig(confidence_lr=10.0)
     tree = _tree(5)
-    opt = cfg.optimizer()
+    opt = cfg.optimizer(STEPS)
     grads = jax.tree_util.tree_map(jnp.ones_like, tree)
     _, opt_state = opt.update(grads, opt.init(tree), tree)
     state = TrainState(params=tree["params"], points=tree["points"], opt_state=opt_state,

@@ -1,5 +1,6 @@
 """RunConfig presets: the serialised presets are pinned (cached runs are matched by their JSON and
-keys), and the learning-rate schedule spans the run however its length is set."""
+keys), and the learning-rate schedule spans the run however its length is set (its length is the
+run's, not a setting)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 
 from ne_jax.cli import build_parser
 from ne_jax.config_json import config_key, config_to_json
-from ne_jax.train.run import PRESETS, RunConfig
+from ne_jax.train.run import PRESETS, RunConfig, load_run_config
 from ne_jax.train.state import LR_FINAL_FRACTION, TrainConfig
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -24,20 +25,20 @@ def test_the_presets_serialize_byte_for_byte_as_pinned(name):
     text = json.dumps(config_to_json(cfg), indent=2) + "\n"
     assert text == (GOLDEN / f"{name}.config.json").read_text(encoding="utf-8")
     assert config_key(cfg) == json.loads((GOLDEN / "keys.json").read_text())[name]
-    assert cfg.schedule_spans_run and cfg.train.total_steps == cfg.total_steps
+    _spans(cfg, cfg.epochs, cfg.steps_per_epoch)
 
 
 def _spans(run: RunConfig, epochs: int, steps: int) -> None:
     assert (run.epochs, run.steps_per_epoch) == (epochs, steps)
-    assert run.train.total_steps == run.total_steps == epochs * steps
-    lr = run.train.schedule()
+    assert run.total_steps == epochs * steps
+    lr = run.train.schedule(run.total_steps)
     floor = run.train.lr * LR_FINAL_FRACTION
     assert float(lr(run.total_steps - 1)) > floor  # still decaying on the last step
     assert float(lr(run.total_steps)) == pytest.approx(floor)
 
 
 @pytest.mark.parametrize("preset", ["tiny", "default", "paper"])
-def test_preset_keyword_arguments_refit_the_schedule(preset):
+def test_preset_keyword_arguments_set_the_length_the_schedule_spans(preset):
     make = getattr(RunConfig, preset)
     base = make()
     _spans(make(epochs=10), 10, base.steps_per_epoch)
@@ -45,28 +46,32 @@ def test_preset_keyword_arguments_refit_the_schedule(preset):
     _spans(make(epochs=2, steps_per_epoch=3, seed=4), 2, 3)
 
 
-def test_replace_refits_a_schedule_that_spans_the_run():
+def test_replace_changes_the_length_the_schedule_spans():
     tiny = RunConfig.tiny()
     _spans(tiny.replace(epochs=10), 10, 125)
     _spans(tiny.replace(steps_per_epoch=40).replace(epochs=3), 3, 40)
-    _spans(tiny.replace(epochs=4, train=tiny.train.replace(lr=1e-3)), 4, 125)  # same total_steps: follows
-    assert tiny.replace(epochs=10).train.lr == tiny.train.lr
-    assert tiny.replace(seed=3).train == tiny.train  # other changes leave the schedule alone
+    _spans(tiny.replace(epochs=4, train=tiny.train.replace(lr=1e-3)), 4, 125)
+    assert tiny.replace(epochs=10).train == tiny.train  # the length is the run's, not the TrainConfig's
 
 
-def test_with_schedule_sets_the_length_and_fits_the_schedule():
+def test_with_schedule_sets_the_length():
     _spans(RunConfig.tiny().with_schedule(epochs=3), 3, 125)
     _spans(RunConfig.default().with_schedule(steps_per_epoch=20), 12, 20)
-    built = RunConfig(epochs=2, steps_per_epoch=5)  # a hand-built config keeps its TrainConfig's schedule
-    assert built.train.total_steps == TrainConfig().total_steps and not built.schedule_spans_run
-    _spans(built.with_schedule(), 2, 5)
+    assert RunConfig.tiny().with_schedule(2, 5) == RunConfig.tiny().replace(epochs=2, steps_per_epoch=5)
+    _spans(RunConfig(epochs=2, steps_per_epoch=5), 2, 5)  # a hand-built config spans its run too
 
 
-def test_an_explicit_schedule_length_is_kept():
-    run = RunConfig.tiny(epochs=10, train=TrainConfig(lr=5e-3, total_steps=300))
-    assert run.train.total_steps == 300 and run.total_steps == 1250 and not run.schedule_spans_run
-    assert run.replace(epochs=2).train.total_steps == 300  # once apart, replace keeps it apart
-    _spans(run.with_schedule(), 10, 125)
+def test_the_schedule_length_is_not_a_setting(tmp_path):
+    with pytest.raises(TypeError, match="total_steps"):
+        TrainConfig(total_steps=300)
+    with pytest.raises(ValueError, match="total_steps"):
+        TrainConfig().schedule(0)
+    # a config.json written when it was one is refused, naming the field (no upgrade)
+    data = config_to_json(RunConfig.tiny())
+    data["train"]["total_steps"] = 750
+    (tmp_path / "config.json").write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"TrainConfig'.*no field\(s\) \['total_steps'\]"):
+        load_run_config(tmp_path)
 
 
 @pytest.mark.parametrize("argv, epochs, steps", [
@@ -89,6 +94,6 @@ def test_the_cli_set_option_changes_one_field_and_names_bad_ones():
 
     gated = run_of("--set", "render.kdtree.density_falloff=1.0", "--set", "train.confidence_lr=10")
     assert gated.render.kdtree.density_falloff == 1.0 and gated.train.confidence_lr == 10
-    assert gated.train.total_steps == RunConfig.tiny().total_steps
+    assert gated.total_steps == RunConfig.tiny().total_steps
     with pytest.raises(ValueError, match="RunConfig has no field 'renderer'"):
         run_of("--set", "renderer.chunk=4")

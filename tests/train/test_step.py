@@ -41,10 +41,12 @@ from tests.mini_presets import mini_benchmark, tiny_render
 MINI = mini_benchmark(resolution=32, train_views=6, detail=0.5, surface_samples=3000)
 RCFG = tiny_render()
 SCFG = SamplerConfig(batch_size=256, band_width=2, band_fraction=0.1)
-TCFG = TrainConfig(total_steps=1000)
+TCFG = TrainConfig()
+SCHEDULE_STEPS = 1000
+"""The length of the learning-rate schedule (a run's ``total_steps``)."""
 STEPS = 40
 _render = jax.jit(render_rays, static_argnums=0)  # one compilation for every 256-ray render below
-STEP_FN = make_train_step(TCFG, RCFG)
+STEP_FN = make_train_step(TCFG, RCFG, total_steps=SCHEDULE_STEPS)
 """The training step of ``world``, made once for the module."""
 
 
@@ -157,7 +159,7 @@ def test_sampler_pixel_grid_groups_each_pixels_rays(world):
 def test_render_with_aux_matches_render_rays(world):
     scene, pool = world["scene"], world["pool"]
     rays = sample_batch(SCFG, pool, jax.random.key(1)).rays
-    params = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1)).params
+    params = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1), total_steps=SCHEDULE_STEPS).params
     bg = jnp.ones(3)
     plain = _render(RCFG, params, scene, rays, bg)
     out, aux = jax.jit(render_rays_with_aux, static_argnums=0)(RCFG, params, scene, rays, bg)
@@ -185,7 +187,7 @@ def _eval_mse(state, world, batch):
 
 def test_training_reduces_photometric_loss_without_recompiling(world):
     step_fn, pool, scene = world["step_fn"], world["pool"], world["scene"]
-    state = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1))
+    state = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1), total_steps=SCHEDULE_STEPS)
     held_out = sample_batch(SCFG, pool, jax.random.key(999))
     mse0 = _eval_mse(state, world, held_out)
     key = jax.random.key(2)
@@ -209,7 +211,7 @@ def test_pixel_grid_step_scores_each_pixels_mean_colour(world):
     rays' colours - its target)^2, not the mean over rays, and the step's gradients are finite."""
     cfg = RCFG.replace(pixel_samples=2)
     pool, scene = world["pool"], world["scene"]
-    state = init_train_state(TCFG, cfg, world["points"], jax.random.key(1))
+    state = init_train_state(TCFG, cfg, world["points"], jax.random.key(1), total_steps=SCHEDULE_STEPS)
     batch = sample_batch(SCFG, pool, jax.random.key(11), 2)
     # the rays' colours: a render reads no pixel_samples (render_image renders every grid at 1), so
     # the one-ray config's compiled render serves
@@ -218,7 +220,7 @@ def test_pixel_grid_step_scores_each_pixels_mean_colour(world):
     per_pixel = np.mean(np.square(rgb.reshape(-1, 4, 3).mean(1) - target[::4]))
     per_ray = np.mean(np.square(rgb - target))
     assert per_ray > 1.05 * per_pixel  # the rays of an edge pixel differ: the two rules disagree here
-    new, m = make_train_step(TCFG, cfg)(state, scene, batch)
+    new, m = make_train_step(TCFG, cfg, total_steps=SCHEDULE_STEPS)(state, scene, batch)
     assert bool(m["ok"]) and int(new.step) == 1
     np.testing.assert_allclose(float(m["loss/photometric"]), per_pixel, rtol=1e-4)
     assert np.isfinite(float(m["grad_norm"])) and float(m["grad_norm"]) > 0
@@ -234,7 +236,7 @@ def _nan_target_point(world, state, batch):
 
 def test_nan_feature_is_refused_and_named(world):
     step_fn, pool, scene = world["step_fn"], world["pool"], world["scene"]
-    state = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1))
+    state = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1), total_steps=SCHEDULE_STEPS)
     batch = sample_batch(SCFG, pool, jax.random.key(5))
     j = _nan_target_point(world, state, batch)
     bad = state.replace(points={**state.points, "feature": state.points["feature"].at[j, 3].set(jnp.nan)})
@@ -256,7 +258,7 @@ def test_nan_feature_is_refused_and_named(world):
 def test_step_finite_at_extreme_confidences_and_empty_rays(world):
     """Confidences near 0 and 1, and rays that hit nothing (zero opacity), through the real step."""
     step_fn, pool, scene = world["step_fn"], world["pool"], world["scene"]
-    state = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1))
+    state = init_train_state(TCFG, RCFG, world["points"], jax.random.key(1), total_steps=SCHEDULE_STEPS)
     c = state.points["conf_logit"].shape[0]
     logit = jnp.asarray(np.where(np.arange(c) % 2 == 0, 30.0, -30.0), jnp.float32)  # c ~ 1 - 1e-13, 1e-13
     state = state.replace(points={**state.points, "conf_logit": logit})
