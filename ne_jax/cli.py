@@ -69,6 +69,7 @@ def _run_config(args):
     from ne_jax.train.run import InitConfig, get_run_preset
 
     run = get_run_preset(args.preset)
+    sets = getattr(args, "set", [])
     if args.epochs is not None or args.steps_per_epoch is not None:
         run = run.with_schedule(args.epochs, args.steps_per_epoch)
     if args.batch_size is not None:
@@ -78,8 +79,13 @@ def _run_config(args):
     if args.init != run.init.source or args.ply is not None:
         if args.ply is not None and args.init != "ply":
             raise ValueError(f"--ply: given with --init {args.init!r}; use --init ply")
-        run = run.replace(init=InitConfig(source=args.init, ply_path=args.ply, carve=run.init.carve))
-    return config_set(run.replace(background=args.background, seed=args.seed), *getattr(args, "set", []))
+        ply = args.ply
+        if args.init == "ply" and ply is None:  # also accepted as --set init.ply_path=FILE
+            ply = next((s.split("=", 1)[1] for s in reversed(sets) if s.startswith("init.ply_path=")), None)
+            if not ply:
+                raise ValueError("--init ply: expected the initial cloud as --ply FILE, found none")
+        run = run.replace(init=InitConfig(source=args.init, ply_path=ply, carve=run.init.carve))
+    return config_set(run.replace(background=args.background, seed=args.seed), *sets)
 
 
 def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True, views: int | None = None) -> dict:

@@ -97,3 +97,17 @@ def test_the_cli_set_option_changes_one_field_and_names_bad_ones():
     assert gated.total_steps == RunConfig.tiny().total_steps
     with pytest.raises(ValueError, match="RunConfig has no field 'renderer'"):
         run_of("--set", "renderer.chunk=4")
+
+
+def test_the_cli_takes_the_initial_ply_from_ply_or_set_and_names_a_missing_one():
+    from ne_jax.cli import _run_config
+
+    def run_of(*argv):
+        return _run_config(build_parser().parse_args(["train", "scene", "--out", "run", "--preset", "tiny", *argv]))
+
+    assert run_of("--init", "ply", "--ply", "a.ply").init.ply_path == "a.ply"
+    assert run_of("--init", "ply", "--set", "init.ply_path=b.ply").init.ply_path == "b.ply"
+    with pytest.raises(ValueError, match="--init ply: expected the initial cloud as --ply FILE"):
+        run_of("--init", "ply")
+    with pytest.raises(ValueError, match="--ply: given with --init 'sfm'"):
+        run_of("--init", "sfm", "--ply", "a.ply")
