@@ -66,7 +66,7 @@ def _cmd_process_images(args) -> int:
 def _run_config(args):
     """The preset with the command line's changes applied (``--set`` last)."""
     from ne_jax.config_json import config_set
-    from ne_jax.train.run import InitConfig, get_run_preset
+    from ne_jax.train.run import get_run_preset
 
     run = get_run_preset(args.preset)
     sets = getattr(args, "set", [])
@@ -84,7 +84,7 @@ def _run_config(args):
             ply = next((s.split("=", 1)[1] for s in reversed(sets) if s.startswith("init.ply_path=")), None)
             if not ply:
                 raise ValueError("--init ply: expected the initial cloud as --ply FILE, found none")
-        run = run.replace(init=InitConfig(source=args.init, ply_path=ply, carve=run.init.carve))
+        run = run.replace(init=dataclasses.replace(run.init, source=args.init, ply_path=ply))
     return config_set(run.replace(background=args.background, seed=args.seed), *sets)
 
 

@@ -62,8 +62,9 @@ MINI_CAPS = tiny_caps(max_segments=24)
 
 
 def mini_init(*, resolution: int = 48, num_points: int = 1500) -> InitConfig:
-    """Carving at ``resolution`` voxels a side, keeping ``num_points`` points."""
-    return InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=resolution, num_points=num_points))
+    """Carving at ``resolution`` voxels a side, keeping ``num_points`` points (an SfM start as many)."""
+    return InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=resolution, num_points=num_points),
+                      sfm_points=num_points)
 
 
 def mini_run(**changes) -> RunConfig:

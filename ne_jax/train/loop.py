@@ -104,7 +104,7 @@ def initial_cloud(cfg: InitConfig, scene_dir: Path, views: Views) -> InitialClou
             raise CarvingError(f"{scene_dir}: init.source='sfm' but the scene folder has no structure-from-motion "
                                "points (COLMAP points3D, nerfstudio ply_file_path)")
         xyz, _, error = found
-        cloud = sfm_cloud(xyz, views, cfg.carve.num_points, error=error, seed=cfg.carve.seed)
+        cloud = sfm_cloud(xyz, views, cfg.sfm_points, error=error, seed=cfg.carve.seed)
     else:
         carve = cfg.carve
         if views.num_views < carve.min_views:

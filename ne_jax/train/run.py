@@ -43,10 +43,16 @@ class InitConfig:
     """The user's PLY for ``source="ply"``."""
     carve: CarveConfig = CarveConfig(bounds=((-1.1,) * 3, (1.1,) * 3), resolution=128, num_points=20_000)
     """Carving settings (the benchmark's objects lie in ``[-1, 1]^3``, and a capture is brought there:
-    :mod:`ne_jax.data.scene`). ``carve.num_points`` is also the size a sparse SfM start is densified to."""
+    :mod:`ne_jax.data.scene`)."""
+    sfm_points: int = 60_000
+    """The size a sparse SfM start (``source="sfm"``) is densified to. A capture spreads its points over
+    the ground and the objects, so it starts denser than a carving (docs/decisions.md, the capture
+    variant's start)."""
     def __post_init__(self):
         if self.source not in INIT_SOURCES:
             raise ValueError(f"InitConfig.source: expected one of {INIT_SOURCES}, found {self.source!r}")
+        if int(self.sfm_points) < 1:
+            raise ValueError(f"InitConfig.sfm_points: expected an integer >= 1, found {self.sfm_points}")
         if self.source == "ply" and not self.ply_path:
             raise ValueError("InitConfig.ply_path: expected a PLY file for source='ply', found None")
 
@@ -149,7 +155,8 @@ class RunConfig:
         render = RenderConfig(kdtree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2, margin_factor=1.5),
                               quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), pixel_samples=2)
         base = cls(name="default", render=render, capacities=Capacities(first_pass_frontier=16, retry_share=0.25),
-                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
+                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000),
+                                   sfm_points=100_000),
                    sampler=SamplerConfig(batch_size=2048, pixel_samples=1), train=TrainConfig(lr=5e-3),
                    epochs=12, steps_per_epoch=500, round_epochs=(3, 9))
         return base.replace(**changes)
@@ -162,7 +169,8 @@ class RunConfig:
         a ray holds (docs/devices.md)."""
         base = cls(name="paper", render=RenderConfig(kdtree=KDTreeConfig(depth=21)),
                    capacities=Capacities(max_segments=64),
-                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000)),
+                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, resolution=256, num_points=300_000),
+                                   sfm_points=300_000),
                    sampler=SamplerConfig(batch_size=4096), train=TrainConfig(lr=2e-3),
                    rounds=RoundConfig(grow_chunk=128), epochs=16, steps_per_epoch=5000, round_epochs=(4, 12))
         return base.replace(**changes)

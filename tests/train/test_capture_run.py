@@ -142,3 +142,17 @@ def test_an_edit_file_in_capture_coordinates_lands_where_the_user_meant(trained,
     expected = model.frame.to_scene(in_capture[5:] + step)
     np.testing.assert_allclose(after, expected, atol=1e-4)
     assert np.allclose(load_trained(tmp_path / "edited").frame.matrix(), model.frame.matrix())
+
+
+def test_an_sfm_start_is_densified_to_init_sfm_points_not_the_carving_count(capture):
+    import dataclasses
+
+    from ne_jax.pointcloud.init import Views
+    from ne_jax.train.loop import initial_cloud
+
+    root, _ = capture
+    init = short_run().init
+    views = Views.from_split(load_split(root, "train"))
+    cloud = initial_cloud(dataclasses.replace(init, source="sfm", sfm_points=900), root, views)
+    assert len(cloud.xyz) == 900 != init.carve.num_points
+    assert cloud.info["why"]
