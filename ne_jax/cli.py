@@ -80,8 +80,8 @@ def _run_config(args):
         if args.ply is not None and args.init != "ply":
             raise ValueError(f"--ply: given with --init {args.init!r}; use --init ply")
         ply = args.ply
-        if args.init == "ply" and ply is None:  # also accepted as --set init.ply_path=FILE
-            ply = next((s.split("=", 1)[1] for s in reversed(sets) if s.startswith("init.ply_path=")), None)
+        if args.init == "ply" and ply is None:  # also accepted as --set init.ply_path=FILE, read as --set reads it
+            ply = config_set(run, *(s for s in sets if s.startswith("init.ply_path="))).init.ply_path
             if not ply:
                 raise ValueError("--init ply: expected the initial cloud as --ply FILE, found none")
         run = run.replace(init=dataclasses.replace(run.init, source=args.init, ply_path=ply))

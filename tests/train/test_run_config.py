@@ -107,6 +107,7 @@ def test_the_cli_takes_the_initial_ply_from_ply_or_set_and_names_a_missing_one()
 
     assert run_of("--init", "ply", "--ply", "a.ply").init.ply_path == "a.ply"
     assert run_of("--init", "ply", "--set", "init.ply_path=b.ply").init.ply_path == "b.ply"
+    assert run_of("--init", "ply", "--set", 'init.ply_path="c d.ply"').init.ply_path == "c d.ply"  # as JSON
     with pytest.raises(ValueError, match="--init ply: expected the initial cloud as --ply FILE"):
         run_of("--init", "ply")
     with pytest.raises(ValueError, match="--ply: given with --init 'sfm'"):
