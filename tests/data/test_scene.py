@@ -14,7 +14,7 @@ from ne_jax.data.nerf_synthetic import write_split
 from ne_jax.data.png import DataError
 from ne_jax.data.scene import LOOKED_FOR, Normalisation, detect_format, load_split, normalisation
 from ne_jax.pointcloud.init import Views
-from ne_jax.pointcloud.sfm_init import sfm_cloud
+from ne_jax.pointcloud.sfm_init import SfmCleaning, sfm_cloud
 
 
 def _capture(rng, *, centre, up, radius, half, points=True, n=24) -> tuple[Capture, np.ndarray]:
@@ -124,6 +124,24 @@ def test_sfm_cloud_drops_outliers_and_densifies_on_the_surface():
     assert info["after_error"] == len(xyz) - 10
     assert info["after_visibility"] == info["after_error"] - 1  # the point behind every camera
     assert info["after_outliers"] <= info["after_visibility"] - int(0.8 * len(outliers))
+
+
+def test_sfm_cloud_averages_the_noise_across_a_surface_and_keeps_its_curvature():
+    """SfM noise across a surface becomes thickness of the start: each kept point is moved onto the
+    plane of its neighbours, so a noisy plane's spread across it falls and a sphere keeps its radius."""
+    rng = np.random.default_rng(5)
+    sigma = 0.02
+    plane = np.concatenate([rng.uniform(-0.8, 0.8, (1500, 2)), rng.normal(scale=sigma, size=(1500, 1))], 1)
+    cloud = sfm_cloud(plane, _sphere_views(), 6000)
+    assert np.std(cloud.xyz[:, 2]) < sigma / 2
+    sphere = rng.normal(size=(1500, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    sphere *= 0.6
+    cloud = sfm_cloud(sphere, _sphere_views(), 6000)
+    radius = np.linalg.norm(cloud.xyz, axis=1)
+    assert abs(np.median(radius) - 0.6) < 0.01  # the fit planes' bias stays within a few per cent
+    unsmoothed = sfm_cloud(plane, _sphere_views(), 6000, cfg=SfmCleaning(smooth_neighbors=0))
+    assert np.std(unsmoothed.xyz[:, 2]) > 0.8 * sigma
 
 
 def test_sfm_cloud_needs_points_to_start_from():
