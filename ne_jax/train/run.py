@@ -44,7 +44,7 @@ class InitConfig:
     carve: CarveConfig = CarveConfig(bounds=((-1.1,) * 3, (1.1,) * 3), resolution=128, num_points=20_000)
     """Carving settings (the benchmark's objects lie in ``[-1, 1]^3``, and a capture is brought there:
     :mod:`ne_jax.data.scene`)."""
-    sfm_points: int = 60_000
+    sfm_points: int = 100_000
     """The size a sparse SfM start (``source="sfm"``) is densified to. A capture spreads its points over
     the ground and the objects, so it starts denser than a carving (docs/decisions.md, the capture
     variant's start)."""
@@ -155,8 +155,7 @@ class RunConfig:
         render = RenderConfig(kdtree=KDTreeConfig(knn_k=16, candidate_min=32, num_render_levels=2, margin_factor=1.5),
                               quadrature=QuadratureConfig(samples_per_level=(4, 6, 8)), pixel_samples=2)
         base = cls(name="default", render=render, capacities=Capacities(first_pass_frontier=16, retry_share=0.25),
-                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000),
-                                   sfm_points=100_000),
+                   init=InitConfig(carve=dataclasses.replace(InitConfig().carve, num_points=100_000)),
                    sampler=SamplerConfig(batch_size=2048, pixel_samples=1), train=TrainConfig(lr=5e-3),
                    epochs=12, steps_per_epoch=500, round_epochs=(3, 9))
         return base.replace(**changes)
