@@ -111,7 +111,9 @@ def test_a_capture_run_evaluates_renders_and_exports_in_its_own_coordinates(capt
     part = json.loads((tmp_path / "part" / "metrics.json").read_text())
     assert part["num_views"] == 2 and part["subset"]["of"] == train_views
     assert part["subset"]["projected_split_seconds"] >= part["seconds"]
-    assert sorted(p.name[:3] for p in (tmp_path / "part" / "images").iterdir()) == ["000", f"{train_views - 1:03d}"]
+    written = sorted(p.name for p in (tmp_path / "part" / "images").iterdir())
+    assert [name[:3] for name in written] == ["000", f"{train_views - 1:03d}"]
+    assert all(name.count(".png") == 1 for name in written)  # the image's own name, not name.png.png
     assert "the whole split would take at most" in capsys.readouterr().out
     assert main(["render", str(out), "--orbit", "2", "--out", str(tmp_path / "orbit.gif")]) == 0
     assert (tmp_path / "orbit.gif").is_file()
