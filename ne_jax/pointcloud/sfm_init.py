@@ -105,7 +105,7 @@ def sfm_cloud(xyz: np.ndarray, views: Views, num_points: int, *,
     if len(pts) < 4:
         raise ValueError(f"SfM points: {len(pts)} of {len(xyz)} survive cleaning (reprojection error, seen by "
                          f">= {cfg.min_views} views, statistical outliers); expected at least 4")
-    if cfg.smooth_neighbors > 0 and len(pts) > 3:
+    if cfg.smooth_neighbors > 0:
         pts = _onto_local_planes(pts, min(cfg.smooth_neighbors, len(pts) - 1))
     rng = np.random.default_rng(seed)
     if len(pts) >= num_points:
