@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import os
 import sys
 import time
 from pathlib import Path
@@ -89,13 +88,6 @@ def _run_config(args):
     return config_set(run.replace(background=args.background, seed=args.seed), *sets)
 
 
-def _view_png(index: int, file_path: str) -> str:
-    """The PNG a rendered view is written to: ``003_r_3.png`` for ``./test/r_3`` or ``r_3.png``."""
-    name = Path(file_path).name
-    stem, ext = os.path.splitext(name)
-    return f"{index:03d}_{stem if ext.lower() in ('.png', '.jpg', '.jpeg') else name}.png"
-
-
 def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True, views: int | None = None) -> dict:
     """Render and score a split of ``model``; write ``out/metrics.json`` and ``out/images/*.png``.
     ``views``: score only this many views, evenly spaced over the split, and report the time a view
@@ -129,7 +121,7 @@ def _evaluate(model, scene_dir: Path, split_name: str, out: Path, progress=True,
     for view, share in zip(report["views"], view_shares(labels, "hole")):
         view["hole_pixels"] = round(float(share), 6)
     truth = composite(split.images, report["background"])
-    names = [_view_png(i, p) for i, p in zip(chosen, split.file_paths)]
+    names = [f"{i:03d}_{Path(p).name}" for i, p in zip(chosen, split.file_paths)]
     save_images(images, out / "images", names)
     save_images([error_map_picture(t, p, lab) for t, p, lab in zip(truth, images, labels)], out / "error_maps", names)
     atomic_write_json(out / "metrics.json", report)
@@ -245,7 +237,7 @@ def _cmd_render(args) -> int:
         images = render_views(run.render, model.state.params, model.scene, cameras, background, run.sampler.near,
                               run.sampler.far)
         out = Path(args.out) if args.out else Path(args.run) / f"render_{args.split}"
-        names = [_view_png(i, p) for i, p in enumerate(split.file_paths)]
+        names = [f"{i:03d}_{Path(p).name}" for i, p in enumerate(split.file_paths)]
         save_images(images, out, names)
         print(f"{args.split}: {len(names)} images -> {out}")
     return 0

@@ -268,10 +268,15 @@ def write_video(frames, path: str | os.PathLike, fps: float = 24) -> Path:
     return atomic_write_bytes(path, data)
 
 
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+"""Extensions :func:`save_images` replaces by ``.png`` at the end of a name."""
+
+
 def save_images(images, folder: str | os.PathLike, names: Sequence[str]) -> list[Path]:
     """Write ``images`` ``[N, H, W, C]`` (float, clipped to [0, 1]; or uint8) as
-    ``folder/<name>.png``, each file atomically with :func:`~ne_jax.data.png.write_image` (a ``.png``
-    already at the end of a name is not repeated). ``names`` are plain file names, not paths.
+    ``folder/<name>.png``, each file atomically with :func:`~ne_jax.data.png.write_image` (an image
+    extension at the end of a name, ``.png``/``.jpg``/``.jpeg``, is replaced, not repeated: ``frame_1.jpg``
+    is written as ``frame_1.png``). ``names`` are plain file names, not paths.
     Returns the paths written."""
     images = np.asarray(images)
     names = list(names)
@@ -282,7 +287,7 @@ def save_images(images, folder: str | os.PathLike, names: Sequence[str]) -> list
     for name in names:
         if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or os.sep in name:
             raise ValueError(f"save_images: names must be plain file names, found {name!r}")
-    files = [name if name.lower().endswith(".png") else f"{name}.png" for name in names]
+    files = [f"{os.path.splitext(name)[0] if name.lower().endswith(IMAGE_EXTENSIONS) else name}.png" for name in names]
     if len(set(files)) != len(files):
         raise ValueError(f"save_images: names must give distinct files, found {names}")
     folder = Path(folder)

@@ -285,6 +285,8 @@ def test_save_images_round_trip(tmp_path):
     frames[1, 0, 0] = [1.5, -0.5, 0.5]  # out of range: clipped
     paths = save_images(frames, tmp_path / "renders", ["r_0", "r_1.png"])
     assert [p.name for p in paths] == ["r_0.png", "r_1.png"]
+    jpgs = save_images(frames, tmp_path / "jpg", ["IMG.0001.JPG", "b.jpeg"])
+    assert [p.name for p in jpgs] == ["IMG.0001.png", "b.png"]
     for p, f in zip(paths, frames):
         back = read_image(p)
         np.testing.assert_allclose(back[..., :3], np.clip(f, 0, 1), atol=0.5 / 255 + 1e-6)
