@@ -4,6 +4,7 @@ exported and edited, with every coordinate a user sees in the capture's frame.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -15,8 +16,9 @@ from ne_jax.data.ply import read_ply
 from ne_jax.data.scene import SCENE_RECORD_FILE, detect_format, load_split
 from ne_jax.edit.model import edit_model
 from ne_jax.eval import evaluate_model
+from ne_jax.pointcloud.init import Views
 from ne_jax.train.effects import with_declared
-from ne_jax.train.loop import train
+from ne_jax.train.loop import initial_cloud, train
 from ne_jax.train.model import load_trained
 
 from tests.data.formats_fixtures import write_colmap_text
@@ -147,11 +149,6 @@ def test_an_edit_file_in_capture_coordinates_lands_where_the_user_meant(trained,
 
 
 def test_an_sfm_start_is_densified_to_init_sfm_points_not_the_carving_count(capture):
-    import dataclasses
-
-    from ne_jax.pointcloud.init import Views
-    from ne_jax.train.loop import initial_cloud
-
     root, _ = capture
     init = short_run().init
     views = Views.from_split(load_split(root, "train"))
